@@ -1,0 +1,29 @@
+# One place for the commands the README promises. Every target works on a fresh machine of this kind.
+PY     ?= .venv/bin/python
+PIP    ?= .venv/bin/pip
+STAMP  := .venv/.installed
+
+.PHONY: setup demo test bench clean
+
+$(STAMP): pyproject.toml
+	@if ! ldconfig -p | grep -q libusb-1.0; then \
+	  (apt-get update -qq && apt-get install -y -qq libusb-1.0-0 libgomp1) || \
+	  { echo "error: open3d needs the Debian package libusb-1.0-0; install it as root" >&2; exit 1; }; fi
+	test -x $(PY) || python3 -m venv .venv
+	$(PIP) install -q --disable-pip-version-check torch==2.13.0
+	$(PIP) install -q --disable-pip-version-check -e ".[dev]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m eval.demo
+
+test: $(STAMP)
+	$(PY) -m pytest -n 2 -q
+
+bench: $(STAMP)
+	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf .venv build *.egg-info .pytest_cache
