@@ -23,6 +23,7 @@ class SuctionConfig:
     body_radius: float = 0.0  # optional wider tool body above the cylinder; 0 disables it
     body_near: float = 0.100
     body_far: float = 0.300
+    num_threads: int = 0  # Open3D ray-casting threads; 0 uses every core (set 1 in parallel workers)
 
     def __post_init__(self) -> None:
         positive = {
@@ -39,6 +40,9 @@ class SuctionConfig:
             raise ValueError(f"SuctionConfig.seal_model must be 'spring' or 'suctionnet', got {self.seal_model!r}")
         if not 0 <= self.tool_near < self.tool_far:
             raise ValueError("SuctionConfig needs 0 <= tool_near < tool_far")
+        threads = self.num_threads
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
+            raise ValueError(f"SuctionConfig.num_threads must be an int >= 0, got {self.num_threads!r}")
         if self.body_radius < 0 or (self.body_radius > 0 and not self.body_near < self.body_far):
             raise ValueError("SuctionConfig body_radius must be >= 0 with body_near < body_far")
 

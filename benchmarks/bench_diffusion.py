@@ -1,0 +1,149 @@
+"""Diffusion-Suction speed and memory on CPU: neighbourhood precompute, encoder (once), decoder x DDIM steps,
+end-to-end policy.predict, and a training step. Prints a markdown table.
+
+    .venv/bin/python benchmarks/bench_diffusion.py [--threads 2] [--sizes 4096 8192 16384] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import default_collate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from policies.diffusion.config import DiffusionConfig  # noqa: E402
+from policies.diffusion.model import build_model  # noqa: E402
+from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods  # noqa: E402
+from policies.diffusion.policy import DiffusionSuctionPolicy  # noqa: E402
+from policies.diffusion.synthetic import synthetic_scene  # noqa: E402
+
+
+CLOCK = time.perf_counter  # --cpu-time switches to process CPU time (a shared, oversubscribed box inflates wall time)
+
+
+def timed(fn, repeats: int) -> float:
+    """Median time in ms after one warm-up call."""
+    fn()
+    runs = []
+    for _ in range(repeats):
+        t = CLOCK()
+        fn()
+        runs.append(CLOCK() - t)
+    return 1000 * statistics.median(runs)
+
+
+def peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decode_points: int) -> dict:
+    scene = synthetic_scene(np.random.default_rng(0), n)
+    model = build_model(cfg).eval()
+    nb = {}
+    t_nb = timed(lambda: nb.update(compute_neighbourhoods(scene["points"], cfg)), repeats)
+    batch = {k: torch.from_numpy(np.asarray(v)).unsqueeze(0) for k, v in {**scene, **nb}.items()}
+    with torch.inference_mode():
+        feats = model.encode(batch)
+        t_enc = timed(lambda: model.encode(batch), repeats)
+        t_dec = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0)), repeats)
+        sub = torch.arange(0, n, max(1, n // decode_points))[:decode_points].unsqueeze(0)
+        t_sub = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0), point_index=sub), repeats)
+    obs = {"points": scene["points"], "normals": scene["normals"]}
+    full = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=0)
+    fast = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=decode_points)
+    t_pol = timed(lambda: full.predict(obs), repeats)
+    t_fast = timed(lambda: fast.predict(obs), repeats)
+    return {"config": name, "N": n, "neighbourhoods": t_nb, "encoder": t_enc,
+            f"decoder x{cfg.inference_steps} (N)": t_dec, f"decoder x{cfg.inference_steps} ({decode_points} pts)": t_sub,
+            "predict (decode N)": t_pol, f"predict (decode {decode_points})": t_fast, "peak RSS MB": peak_mb()}
+
+
+def bench_deploy(cfg: DiffusionConfig, n: int, repeats: int) -> dict:
+    """The shipped CPU setting: an n-point observation grid-sampled down to cfg.num_points inside predict."""
+    scene = synthetic_scene(np.random.default_rng(0), n)
+    obs = {"points": scene["points"], "normals": scene["normals"]}
+    policy = DiffusionSuctionPolicy(model=build_model(cfg), record_trajectory=False)
+    traj = DiffusionSuctionPolicy(model=build_model(cfg), record_trajectory=True)
+    return {"model num_points": cfg.num_points, "input N": n, "predict (ms)": timed(lambda: policy.predict(obs), repeats),
+            "predict + trajectory (ms)": timed(lambda: traj.predict(obs), repeats), "peak RSS MB": peak_mb()}
+
+
+def bench_train(name: str, cfg: DiffusionConfig, batch_size: int, repeats: int) -> dict:
+    t = NeighbourhoodTransform(cfg)
+    samples = [t(synthetic_scene(np.random.default_rng(i), cfg.num_points)) for i in range(batch_size)]
+    t_data = 1000 * statistics.median([_time(lambda: t(synthetic_scene(np.random.default_rng(9), cfg.num_points)))
+                                       for _ in range(repeats)])
+    batch = default_collate(samples)
+    model = build_model(cfg)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
+
+    def step():
+        loss = model.forward_train(batch, torch.Generator().manual_seed(0))["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    return {"config": name, "N": cfg.num_points, "batch": batch_size, "sample prep (ms)": t_data,
+            "train step (ms)": timed(step, repeats), "params": sum(p.numel() for p in model.parameters()),
+            "peak RSS MB": peak_mb()}
+
+
+def _time(fn) -> float:
+    t = CLOCK()
+    fn()
+    return CLOCK() - t
+
+
+def table(rows: list[dict]) -> str:
+    keys = list(rows[0])
+    fmt = lambda v: f"{v:.1f}" if isinstance(v, float) else str(v)  # noqa: E731
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(fmt(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--sizes", type=int, nargs="+", default=[4096, 8192, 16384])
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--decode-points", type=int, default=2048)
+    p.add_argument("--skip-train", action="store_true")
+    p.add_argument("--skip-paper", action="store_true", help="only the CPU preset")
+    p.add_argument("--cpu-time", action="store_true", help="report process CPU time instead of wall time")
+    args = p.parse_args()
+    global CLOCK
+    if args.cpu_time:
+        CLOCK = time.process_time
+    torch.set_num_threads(args.threads)
+    configs = {"cpu (w=0.25)": lambda n: DiffusionConfig.cpu(num_points=n,
+                                                             sa_npoints=tuple(n // d for d in (4, 16, 64, 256)))}
+    if not args.skip_paper:
+        configs["paper (w=1.0)"] = lambda n: DiffusionConfig(num_points=n,
+                                                              sa_npoints=tuple(n // d for d in (4, 16, 64, 256)))
+    rows = [bench_inference(name, make(n), n, args.repeats, args.decode_points)
+            for name, make in configs.items() for n in args.sizes]
+    print(f"### Diffusion-Suction inference, B=1, {args.threads} torch threads, {'CPU' if args.cpu_time else 'wall'} times in ms (median of {args.repeats})\n")
+    print(table(rows))
+    deploy = [bench_deploy(DiffusionConfig.cpu(), n, args.repeats) for n in args.sizes]
+    print(f"\n### Policy.predict with the CPU preset model (input subsampled to 4096), {args.threads} threads\n")
+    print(table(deploy))
+    if not args.skip_train:
+        train_rows = [bench_train("cpu (w=0.25)", DiffusionConfig.cpu(), 4, args.repeats)]
+        if not args.skip_paper:
+            train_rows.append(bench_train("paper (w=1.0)", DiffusionConfig(num_points=16384), 1, max(1, args.repeats - 2)))
+        print(f"\n### Training step (forward + backward incl. the 20-step map loss), {args.threads} threads\n")
+        print(table(train_rows))
+    print(f"\npeak RSS: {peak_mb():.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,111 @@
+"""ParcelPick-v0 speed: reset (pile build + settle + render) and wall time per pick attempt.
+
+A stacked mixed pile (30 parcels by default) is picked by the scripted top-patch picker until the
+bin is clear or ``--attempts`` attempts (the 3-consecutive-failure stop is off unless
+``--max-failures`` is given). Prints a markdown table with the reset time, the mean wall
+time per attempt (total, and the camera's share: render + normals + sampling), outcome counts and
+peak RSS.
+
+    python benchmarks/bench_env.py --parcels 30 --attempts 20 --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from parcelpick_env.camera.config import CameraConfig  # noqa: E402
+from parcelpick_env.envs.parcel_pick import ParcelPickEnv  # noqa: E402
+from parcelpick_env.envs.scripted import top_patch_action  # noqa: E402
+from parcelpick_env.suction.config import SuctionConfig  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--parcels", type=int, default=30)
+    ap.add_argument("--layout", default="stacked")
+    ap.add_argument("--objects", default="mixed")
+    ap.add_argument("--attempts", type=int, default=20, help="stop after this many attempts")
+    ap.add_argument("--episodes", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--points", type=int, default=4096)
+    ap.add_argument("--cup-radius", type=float, default=None,
+                    help="suction cup radius r (m) for the seal and holding checks; default SuctionConfig's")
+    ap.add_argument("--max-failures", type=int, default=1000,
+                    help="consecutive failures that end an episode (the env's default is 3; the benchmark "
+                         "keeps picking so it times more attempts)")
+    args = ap.parse_args(argv)
+
+    env = ParcelPickEnv(num_parcels=args.parcels, layout=args.layout, object_set=args.objects,
+                        camera=CameraConfig(width=args.width, height=args.height), num_points=args.points,
+                        max_attempts=args.attempts, max_consecutive_failures=args.max_failures,
+                        **({"suction": SuctionConfig(cup_radius=args.cup_radius)} if args.cup_radius else {}))
+    capture_times: list[float] = []
+    capture = env.camera.capture
+
+    def timed_capture(*a, **k):  # benchmark-only instrumentation of the camera's share
+        t0 = time.perf_counter()
+        out = capture(*a, **k)
+        capture_times.append(time.perf_counter() - t0)
+        return out
+
+    env.camera.capture = timed_capture
+    resets, steps, step_capture, sim_times = [], [], [], []
+    outcomes: Counter[str] = Counter()
+    causes: Counter[str] = Counter()
+    placed = cleared = 0
+    for ep in range(args.episodes):
+        t0 = time.perf_counter()
+        obs, info = env.reset(seed=args.seed + ep)
+        resets.append(time.perf_counter() - t0)
+        placed += info["parcels_placed"]
+        done = False
+        while not done:
+            action = top_patch_action(obs)
+            n_cap = len(capture_times)
+            t0 = time.perf_counter()
+            obs, _, term, trunc, info = env.step(action)
+            steps.append(time.perf_counter() - t0)
+            step_capture.append(sum(capture_times[n_cap:]))
+            sim_times.append(info["sim_time"])
+            outcomes[info["outcome"]] += 1
+            if info["failure_cause"]:
+                phase = f' ({info["failure_phase"]})' if info.get("failure_phase") else ""
+                causes[f'{info["outcome"]}: {info["failure_cause"]}{phase}'] += 1
+            done = term or trunc
+        cleared += info["parcels_cleared"]
+    env.close()
+
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    steps_a, cap_a = np.array(steps), np.array(step_capture)
+    cup = args.cup_radius or SuctionConfig().cup_radius
+    print(f"ParcelPick-v0, {args.parcels} parcels {args.layout} {args.objects}, camera {args.width}x{args.height}, "
+          f"N={args.points}, cup r={cup * 1000:.0f} mm, scripted top-patch picker, {args.episodes} episode(s)\n")
+    print("| metric | value |")
+    print("|---|---|")
+    print(f"| reset (build + settle + render), mean | {np.mean(resets):.2f} s |")
+    print(f"| pick attempt wall time, mean | {steps_a.mean():.3f} s |")
+    print(f"| pick attempt wall time, median / max | {np.median(steps_a):.3f} / {steps_a.max():.3f} s |")
+    print(f"| of which camera (render + normals), mean | {cap_a.mean():.3f} s |")
+    print(f"| of which physics + planning, mean | {(steps_a - cap_a).mean():.3f} s |")
+    print(f"| simulated time per attempt, mean | {np.mean(sim_times):.1f} s |")
+    print(f"| attempts | {len(steps)} |")
+    print(f"| outcomes | {', '.join(f'{k}: {v}' for k, v in sorted(outcomes.items()))} |")
+    print(f"| failure causes | {'; '.join(f'{k} x{v}' for k, v in sorted(causes.items())) or '-'} |")
+    print(f"| parcels cleared / placed | {cleared} / {placed} |")
+    print(f"| peak RSS | {peak_mb:.0f} MB |")
+
+
+if __name__ == "__main__":
+    main()

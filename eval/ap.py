@@ -1,0 +1,288 @@
+"""Offline AP of a policy on stored test scenes (SuctionNet protocol plus parcel visibility).
+
+    python eval/ap.py --policy normal_std --data data/test --scenes 100 --out results/normal_std_ap.json
+    python -m eval.ap --policy diffusion --data data/test --checkpoint runs/diffusion/model.pt
+
+Per scene: the policy sees an observation rebuilt from the stored capture (the labelled cloud, RGB-D
+and calibration; never the labels). Its candidates go through NMS (0.02 m), each is assigned to the
+nearest true parcel surface, the 10 best per parcel are kept, and every kept candidate is re-scored
+online on the TRUE meshes, rebuilt from the stored asset ids and poses, with the shared suction
+scorer (seal, wrench, collision, and the stored per-parcel visibility). ``eval.metrics`` then turns
+the ranked qualities into AP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+if __package__ in (None, ""):  # run as a script: make the repository root importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dataset.storage import Record, ShardedDataset, open_dataset  # noqa: E402
+from eval.metrics import DEFAULT_MAX_K, DEFAULT_THRESHOLDS, aggregate_ap, scene_ap, select_predictions  # noqa: E402
+from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
+from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene  # noqa: E402
+from parcelpick_env.suction.config import SuctionConfig  # noqa: E402
+from parcelpick_env.suction.scorer import SuctionScorer  # noqa: E402
+from parcelpick_env.suction.visibility import object_visibility  # noqa: E402
+from policies.base import Candidates, Policy  # noqa: E402
+from policies.postprocess import select_candidates  # noqa: E402
+
+# What the evaluator reads from each stored scene (dataset/annotate.py writes them).
+OBSERVATION_KEYS = ("points", "normals", "rgb", "depth", "intrinsics", "extrinsics")
+GROUND_TRUTH_KEYS = ("object_asset_ids", "object_categories", "object_poses", "bin_spec", "library_seed")
+
+
+@dataclass(frozen=True)
+class APConfig:
+    """Protocol constants; the defaults are SuctionNet's."""
+
+    nms_radius: float = 0.02
+    per_object: int = 10
+    max_k: int = DEFAULT_MAX_K
+    thresholds: tuple[float, ...] = DEFAULT_THRESHOLDS
+    candidates: int = 1024  # top_k asked of the policy, before NMS and the per-object cap
+    num_points: int | None = None  # cloud size shown to the policy; None: the policy's own, else all stored
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.nms_radius >= 0:
+            raise ValueError(f"APConfig.nms_radius must be >= 0, got {self.nms_radius!r}")
+        for name in ("per_object", "max_k", "candidates"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"APConfig.{name} must be >= 1, got {getattr(self, name)!r}")
+        if self.num_points is not None and self.num_points < 1:
+            raise ValueError(f"APConfig.num_points must be >= 1 or None, got {self.num_points!r}")
+        if self.seed < 0:
+            raise ValueError(f"APConfig.seed must be >= 0, got {self.seed!r}")
+        if not self.thresholds or any(not 0 <= t <= 1 for t in self.thresholds):
+            raise ValueError(f"APConfig.thresholds must be non-empty and in [0, 1], got {self.thresholds!r}")
+
+
+def _require(record: Record, keys: Sequence[str], where: str) -> None:
+    missing = [k for k in keys if k not in record]
+    if missing:
+        hint = "; regenerate the dataset with images (without --no-images)" if {"rgb", "depth"} & set(missing) else ""
+        raise ValueError(f"{where} lacks {missing}{hint}")
+
+
+def scene_from_record(record: Record, library: AssetLibrary | None = None) -> Scene:
+    """The true pile of a stored scene: library meshes placed at the stored poses, and the bin."""
+    _require(record, GROUND_TRUTH_KEYS, "scene record")
+    if library is None:
+        library = AssetLibrary.default(int(record["library_seed"]))
+    asset_ids = np.asarray(record["object_asset_ids"]).reshape(-1)
+    poses = np.asarray(record["object_poses"], dtype=np.float64).reshape(-1, 7)
+    if len(asset_ids) != len(poses):
+        raise ValueError(f"scene record has {len(asset_ids)} asset ids but {len(poses)} poses")
+    parcels = [ParcelState(object_id=k, body_id=-1, asset=library.get(str(asset_id)), position=pose[:3],
+                           orientation=pose[3:], friction=float("nan"))
+               for k, (asset_id, pose) in enumerate(zip(asset_ids, poses))]
+    bin_fields = json.loads(str(record["bin_spec"]))
+    bin_spec = BinSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in bin_fields.items()})
+    return Scene(parcels=parcels, bin=bin_spec, seed=int(record.get("scene_seed", -1)),
+                 layout=str(record.get("layout", "")), object_set=str(record.get("object_set", "")),
+                 split=str(record.get("split", "")))
+
+
+def observation_from_record(record: Record, num_points: int | None, rng: np.random.Generator
+                            ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The env-style (obs, info) of a stored capture; the cloud is resampled to ``num_points``."""
+    _require(record, OBSERVATION_KEYS, "scene record")
+    points = np.asarray(record["points"], dtype=np.float32)
+    normals = np.asarray(record["normals"], dtype=np.float32)
+    if num_points is not None and num_points != len(points):
+        pick = rng.choice(len(points), size=num_points, replace=num_points > len(points))
+        points, normals = points[pick], normals[pick]
+    depth = np.asarray(record["depth"], dtype=np.float32)
+    obs = {"points": points, "normals": normals, "rgb": np.asarray(record["rgb"], dtype=np.uint8),
+           "depth": depth[..., None] if depth.ndim == 2 else depth}
+    info = {"intrinsics": np.asarray(record["intrinsics"], dtype=np.float64),
+            "extrinsics": np.asarray(record["extrinsics"], dtype=np.float64)}
+    return obs, info
+
+
+def _checked(candidates: Candidates, policy: Policy) -> Candidates:
+    """Reject malformed predictions with the policy's name rather than failing inside the scorer."""
+    pts, nrm, scores = (np.asarray(a, dtype=np.float64) for a in (candidates.points, candidates.normals,
+                                                                  candidates.scores))
+    if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape or scores.shape != (len(pts),):
+        raise ValueError(f"policy {policy.name!r} returned candidates of shapes {pts.shape}, {nrm.shape}, "
+                         f"{scores.shape}")
+    norms = np.linalg.norm(nrm, axis=1)
+    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(scores)) and np.all(np.abs(norms - 1) < 1e-2)):
+        raise ValueError(f"policy {policy.name!r} returned non-finite candidates or non-unit normals")
+    return Candidates(points=pts.astype(np.float32), normals=(nrm / norms[:, None]).astype(np.float32),
+                      scores=scores.astype(np.float32))
+
+
+def _policy_num_points(policy: Policy) -> int | None:
+    """The cloud size a policy was built for (``num_points`` on it or its config), if it declares one."""
+    for owner in (policy, getattr(policy, "config", None)):
+        value = getattr(owner, "num_points", None)
+        if isinstance(value, (int, np.integer)) and value > 0:
+            return int(value)
+    return None
+
+
+def evaluate_scene(policy: Policy, record: Record, config: APConfig, suction: SuctionConfig,
+                   rng: np.random.Generator, library: AssetLibrary | None = None) -> tuple[Any, dict[str, Any]]:
+    """AP curves and a per-scene summary for one stored scene."""
+    num_points = config.num_points or _policy_num_points(policy)
+    obs, info = observation_from_record(record, num_points, rng)
+    candidates = _checked(policy.predict(obs, info, top_k=config.candidates), policy)
+    kept = select_candidates(candidates.points, candidates.normals, candidates.scores, top_k=len(candidates),
+                             nms_radius=config.nms_radius)
+
+    scene = scene_from_record(record, library)
+    scorer = SuctionScorer.from_scene(scene, suction)
+    object_ids, _ = scorer.nearest_object(kept.points)
+    chosen = select_predictions(kept.points, kept.normals, kept.scores, object_ids, per_object=config.per_object)
+    categories = np.asarray(record["object_categories"]).reshape(-1).astype(str)
+    if "object_visibility" in record:
+        visibility = np.asarray(record["object_visibility"], dtype=np.float64)
+    else:  # older records: recompute with the same rays the labels used
+        depth = np.asarray(record["depth"])
+        visibility = object_visibility(scene.world_meshes(), info["intrinsics"], info["extrinsics"],
+                                       depth.shape[1], depth.shape[0], occluders=scene.bin.meshes())
+    if len(chosen):
+        quality = scorer.score(chosen.points, chosen.normals, chosen.object_ids, visibility=visibility)
+        totals = quality.total
+        components = {name: float(getattr(quality, name).mean()) for name in ("seal", "wrench", "collision",
+                                                                               "visibility")}
+    else:  # nothing proposed: every P@k is 0
+        totals, components = np.zeros(0, dtype=np.float32), {}
+    curves = scene_ap(chosen.scores, totals, categories=categories[chosen.object_ids],
+                      scene_categories=list(categories), thresholds=config.thresholds, max_k=config.max_k)
+    summary = {
+        "num_objects": int(len(categories)),
+        "num_candidates": int(len(candidates)),
+        "num_after_nms": int(len(kept)),
+        "num_scored": int(len(chosen)),
+        "AP": 100.0 * float(curves.precision.mean()),
+        "mean_quality": float(totals.mean()) if len(totals) else 0.0,
+        "mean_components": components,
+    }
+    return curves, summary
+
+
+def _open(data_dir: str | os.PathLike) -> ShardedDataset:
+    path = Path(data_dir)
+    if not path.is_dir():
+        raise FileNotFoundError(f"dataset directory {path} does not exist")
+    return open_dataset(path)
+
+
+def evaluate_ap(policy: Policy | str, data_dir: str | os.PathLike, scenes: int | None = None,
+                config: APConfig = APConfig(), progress: bool = False) -> dict[str, Any]:
+    """Run the protocol on the first ``scenes`` stored scenes (all by default); return the results dict.
+
+    ``policy`` is a Policy or a registered name. Keys: everything ``aggregate_ap`` returns (``AP``,
+    ``AP0.4``, ``AP0.8``, ``top1_*``, ``per_category``, ...), plus ``policy``, ``data``, ``split``,
+    ``config``, ``seconds`` and ``scenes`` (one summary per scene).
+    """
+    if isinstance(policy, str):
+        policy = _make_policy(policy, None)
+    store = _open(data_dir)
+    try:
+        total = len(store) if scenes is None else min(int(scenes), len(store))
+        if total < 1:
+            raise ValueError(f"nothing to evaluate: {data_dir} holds {len(store)} scenes, asked for {scenes}")
+        suction_fields = store.config.get("suction")
+        suction = SuctionConfig(**suction_fields) if isinstance(suction_fields, dict) else SuctionConfig()
+        per_scene, summaries = [], []
+        started = time.perf_counter()
+        for i in range(total):
+            t0 = time.perf_counter()
+            record = store.scene(i)
+            policy.reset(seed=config.seed + i)
+            curves, summary = evaluate_scene(policy, record, config, suction, np.random.default_rng([config.seed, i]))
+            summary.update(index=int(store.scene_indices[i]), seconds=time.perf_counter() - t0)
+            per_scene.append(curves)
+            summaries.append(summary)
+            if progress:
+                print(f"scene {i + 1}/{total}: AP {summary['AP']:.1f} ({summary['num_scored']} scored, "
+                      f"{summary['seconds']:.1f} s)", file=sys.stderr)
+    finally:
+        store.close()
+    result = aggregate_ap(per_scene)
+    result.update(policy=policy.name, data=str(data_dir), split=store.config.get("split"),
+                  config=dataclasses.asdict(config),
+                  seconds=time.perf_counter() - started, scenes=summaries)
+    return result
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """Markdown table: overall and per category, in percent."""
+    columns = [("AP", "AP"), ("AP0.4", "AP0.4"), ("AP0.8", "AP0.8"), ("top1_AP", "Top-1 AP"),
+               ("top1_AP0.4", "Top-1 AP0.4"), ("top1_AP0.8", "Top-1 AP0.8"), ("num_scenes", "scenes")]
+    lines = [f"Offline AP of {result.get('policy', '?')} on {result.get('data', '?')}", "",
+             "| subset | " + " | ".join(title for _, title in columns) + " |",
+             "|---|" + "---|" * len(columns)]
+    rows = [("overall", result)] + list(result.get("per_category", {}).items())
+    for name, row in rows:
+        cells = [str(row.get(key, "-")) if key == "num_scenes" else
+                 (f"{row[key]:.2f}" if key in row else "-") for key, _ in columns]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _make_policy(name: str, checkpoint: str | None) -> Policy:
+    from policies.registry import make_policy
+
+    kwargs = {"checkpoint": checkpoint} if checkpoint else {}
+    return make_policy(name, **kwargs)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d = APConfig()
+    p = argparse.ArgumentParser(prog="python -m eval.ap", description=__doc__.split("\n\n")[0])
+    p.add_argument("--policy", required=True, help="registered policy name (policies/registry.py)")
+    p.add_argument("--data", required=True, type=Path, help="dataset directory (python -m dataset.generate)")
+    p.add_argument("--scenes", type=int, default=None, help="evaluate only the first N scenes")
+    p.add_argument("--out", type=Path, default=None, help="write the results JSON here")
+    p.add_argument("--checkpoint", default=None, help="weights for learned policies")
+    p.add_argument("--candidates", type=int, default=d.candidates, help="top_k asked of the policy")
+    p.add_argument("--num-points", type=int, default=None, help="cloud size shown to the policy")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--quiet", action="store_true", help="no per-scene progress on stderr")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.scenes is not None and args.scenes < 1:
+        parser.error(f"--scenes must be >= 1, got {args.scenes}")
+    if not args.data.is_dir():
+        parser.error(f"dataset directory {args.data} does not exist")
+    try:
+        config = APConfig(candidates=args.candidates, num_points=args.num_points, seed=args.seed)
+        policy = _make_policy(args.policy, args.checkpoint)
+    except (ValueError, TypeError, ImportError, NotImplementedError, FileNotFoundError) as exc:
+        parser.error(f"cannot make policy {args.policy!r}: {exc}")
+    try:
+        result = evaluate_ap(policy, args.data, scenes=args.scenes, config=config, progress=not args.quiet)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(format_table(result))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=2))
+        print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

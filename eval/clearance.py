@@ -1,0 +1,267 @@
+"""Closed-loop clearance: the paper's real-robot protocol (Table V), run in ParcelPick-v0.
+
+Each episode builds a pile and lets a policy pick until the bin is clear or three consecutive attempts
+fail. ``R_grasp = successes / attempts`` and ``R_object = parcels cleared / parcels placed`` are pooled
+per (object set, layout) cell. Every episode has its own seed, derived from ``--seed`` and its place in
+the grid, so the numbers do not depend on the worker count or the backend.
+
+    python eval/clearance.py --policy diffusion --episodes 2 --record runs/replays
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+if __package__ in (None, ""):  # allow `python eval/clearance.py` as well as `python -m eval.clearance`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from parcelpick_env.parallel import BACKENDS, parallel_map  # noqa: E402
+
+OBJECT_SETS: tuple[str, ...] = ("rectangular", "planar", "cylindrical", "mixed")
+LAYOUTS: tuple[str, ...] = ("scattered", "stacked")
+OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", "dropped", "collision",
+                             "invalid_action")
+
+
+@dataclass(frozen=True)
+class ClearanceConfig:
+    policy: str = "diffusion"
+    objects: tuple[str, ...] = OBJECT_SETS
+    layouts: tuple[str, ...] = LAYOUTS
+    episodes: int = 1  # per (object set, layout) cell
+    num_parcels: int = 8
+    seed: int = 0
+    workers: int = 1
+    backend: str = "local"
+    ray_address: str | None = None
+    record_dir: str | None = None
+    checkpoint: str | None = None
+    max_attempts: int | None = None
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name, values, allowed in (("objects", self.objects, OBJECT_SETS), ("layouts", self.layouts, LAYOUTS)):
+            bad = [v for v in values if v not in allowed]
+            if bad or not values:
+                raise ValueError(f"{name} must be a non-empty subset of {allowed}, got {values}")
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        if not 1 <= self.num_parcels <= 50:
+            raise ValueError(f"num_parcels must be in [1, 50], got {self.num_parcels}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
+
+
+@dataclass(frozen=True)
+class EpisodeTask:
+    index: int
+    objects: str
+    layout: str
+    episode: int
+    seed: int
+    config: ClearanceConfig
+
+
+@dataclass
+class EpisodeResult:
+    objects: str
+    layout: str
+    episode: int
+    seed: int
+    attempts: int
+    successes: int
+    parcels_placed: int
+    parcels_cleared: int
+    reason: str
+    outcomes: dict[str, int]
+    replay: str | None
+    wall_time_s: float
+
+
+def episode_tasks(config: ClearanceConfig) -> list[EpisodeTask]:
+    """The evaluation grid, with one independent seed per episode."""
+    tasks = []
+    for objects in config.objects:
+        for layout in config.layouts:
+            for episode in range(config.episodes):
+                cell = (OBJECT_SETS.index(objects), LAYOUTS.index(layout), episode)
+                seed = int(np.random.SeedSequence([config.seed, *cell]).generate_state(1)[0])
+                tasks.append(EpisodeTask(len(tasks), objects, layout, episode, seed, config))
+    return tasks
+
+
+def run_episode(task: EpisodeTask) -> EpisodeResult:
+    """One closed-loop episode; top-level so process pools and Ray can ship it."""
+    import gymnasium as gym
+
+    import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
+    from policies.registry import make_policy
+
+    cfg = task.config
+    env_kwargs = dict(cfg.env_kwargs, object_set=task.objects, layout=task.layout, num_parcels=cfg.num_parcels)
+    if cfg.max_attempts is not None:
+        env_kwargs["max_attempts"] = cfg.max_attempts
+    if cfg.record_dir is not None:
+        env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
+    policy_kwargs = {"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}
+    policy = make_policy(cfg.policy, **policy_kwargs)
+
+    start = time.perf_counter()
+    env = gym.make("ParcelPick-v0", **env_kwargs)
+    try:
+        obs, info = env.reset(seed=task.seed)
+        policy.reset(task.seed)
+        outcomes: Counter[str] = Counter()
+        first = True
+        while True:
+            action = _choose_action(policy, obs, info, env.unwrapped.action_space.shape)
+            if first:
+                _log_policy_extras(env.unwrapped, policy)
+                first = False
+            obs, _, terminated, truncated, info = env.step(action)
+            outcomes[info["outcome"]] += 1
+            if terminated or truncated:
+                break
+        replay = getattr(env.unwrapped, "replay_path", None)
+    finally:
+        env.close()
+    return EpisodeResult(
+        objects=task.objects, layout=task.layout, episode=task.episode, seed=task.seed,
+        attempts=int(info["attempts"]), successes=int(info["successes"]),
+        parcels_placed=int(info["parcels_placed"]), parcels_cleared=int(info["parcels_cleared"]),
+        reason=str(info.get("reason", "truncated")), outcomes=dict(outcomes),
+        replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start)
+
+
+def _choose_action(policy, obs, info, shape) -> np.ndarray:
+    """A policy that finds no candidate still spends an attempt, as a real robot cycle would."""
+    try:
+        return policy.act(obs, info)
+    except ValueError:
+        return np.full(shape, np.nan, dtype=np.float32)
+
+
+def _log_policy_extras(env, policy) -> None:
+    """Put the Diffusion-Suction denoising trajectory of the first attempt into the replay."""
+    recorder = getattr(env, "recorder", None)
+    trajectory = getattr(policy, "last_trajectory", None)
+    if recorder is not None and trajectory is not None and hasattr(recorder, "log_denoising"):
+        recorder.log_denoising(trajectory)
+
+
+def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
+    """Pool episodes per cell (the paper's Table V) and over everything."""
+    cells: dict[str, dict[str, Any]] = {}
+    for r in results:
+        cell = cells.setdefault(f"{r.objects}/{r.layout}", {"objects": r.objects, "layout": r.layout,
+                                                             "attempts": 0, "successes": 0, "placed": 0,
+                                                             "cleared": 0, "episodes": 0,
+                                                             "outcomes": Counter()})
+        cell["attempts"] += r.attempts
+        cell["successes"] += r.successes
+        cell["placed"] += r.parcels_placed
+        cell["cleared"] += r.parcels_cleared
+        cell["episodes"] += 1
+        cell["outcomes"].update(r.outcomes)
+    total = {"attempts": 0, "successes": 0, "placed": 0, "cleared": 0, "outcomes": Counter()}
+    for cell in cells.values():
+        cell["R_grasp"] = 100.0 * cell["successes"] / max(cell["attempts"], 1)
+        cell["R_object"] = 100.0 * cell["cleared"] / max(cell["placed"], 1)
+        for key in ("attempts", "successes", "placed", "cleared"):
+            total[key] += cell[key]
+        total["outcomes"].update(cell["outcomes"])
+        cell["outcomes"] = dict(cell["outcomes"])
+    total["R_grasp"] = 100.0 * total["successes"] / max(total["attempts"], 1)
+    total["R_object"] = 100.0 * total["cleared"] / max(total["placed"], 1)
+    total["outcomes"] = dict(total["outcomes"])
+    return {"cells": cells, "overall": total}
+
+
+def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) -> str:
+    """Table V layout: rows are object sets, columns layouts, entries R_grasp / R_object (%)."""
+    lines = ["| object set | " + " | ".join(layouts) + " |", "|---|" + "---|" * len(layouts)]
+    for obj in objects:
+        row = []
+        for layout in layouts:
+            cell = summary["cells"].get(f"{obj}/{layout}")
+            row.append("–" if cell is None else f"{cell['R_grasp']:.2f} / {cell['R_object']:.2f}")
+        lines.append(f"| {obj} | " + " | ".join(row) + " |")
+    o = summary["overall"]
+    lines.append(f"\nOverall: R_grasp {o['R_grasp']:.2f}%  R_object {o['R_object']:.2f}%  "
+                 f"({o['successes']}/{o['attempts']} attempts, {o['cleared']}/{o['placed']} parcels)")
+    lines.append("Outcomes: " + ", ".join(f"{k} {o['outcomes'].get(k, 0)}" for k in OUTCOMES))
+    return "\n".join(lines)
+
+
+def evaluate_clearance(config: ClearanceConfig, progress: bool = True) -> dict[str, Any]:
+    tasks = episode_tasks(config)
+    results = list(parallel_map(run_episode, tasks, workers=config.workers, backend=config.backend,
+                                ray_address=config.ray_address, desc=f"clearance[{config.policy}]",
+                                progress=progress))
+    summary = summarise(results)
+    summary["episodes"] = [asdict(r) for r in results]
+    summary["config"] = {k: v for k, v in asdict(config).items()}
+    return summary
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--policy", default="diffusion", help="registered policy name")
+    p.add_argument("--checkpoint", default=None, help="checkpoint for learned policies (default: shipped)")
+    p.add_argument("--objects", nargs="+", default=list(OBJECT_SETS), choices=OBJECT_SETS)
+    p.add_argument("--layout", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
+    p.add_argument("--episodes", type=int, default=1, help="episodes per (object set, layout) cell")
+    p.add_argument("--parcels", type=int, default=8, help="parcels per pile")
+    p.add_argument("--max-attempts", type=int, default=None, help="truncate an episode after this many attempts")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--backend", default="local", choices=BACKENDS)
+    p.add_argument("--ray-address", default=None, help="Ray cluster address, e.g. 'auto'; default: local Ray")
+    p.add_argument("--record", default=None, metavar="DIR", help="write one rerun .rrd replay per episode here")
+    p.add_argument("--out", default=None, help="write the summary JSON here")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from policies.registry import available_policies
+
+    if args.policy not in available_policies():
+        print(f"error: unknown policy {args.policy!r}; available: {', '.join(available_policies())}", file=sys.stderr)
+        return 2
+    try:
+        config = ClearanceConfig(policy=args.policy, objects=tuple(args.objects), layouts=tuple(args.layout),
+                                 episodes=args.episodes, num_parcels=args.parcels, seed=args.seed,
+                                 workers=args.workers, backend=args.backend, ray_address=args.ray_address,
+                                 record_dir=args.record, checkpoint=args.checkpoint,
+                                 max_attempts=args.max_attempts)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    summary = evaluate_clearance(config)
+    print(f"\nClosed-loop clearance, policy {config.policy!r}: R_grasp / R_object (%)\n")
+    print(format_table(summary, config.objects, config.layouts))
+    replays = [e["replay"] for e in summary["episodes"] if e["replay"]]
+    if replays:
+        print(f"\nReplays ({len(replays)}): open one with `rerun {replays[0]}`")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(summary, indent=2, default=str))
+        print(f"Summary written to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,337 @@
+"""ParcelPick-v0: clear a bin of parcels with a suction cup on a Kinova Gen3, one pick per step.
+
+Observation (no ground truth): ``points``/``normals`` (N, 3) float32, world frame, N fixed (the
+camera cloud sampled without replacement, or padded by repeats, with the env's ``np_random``);
+``rgb`` (H, W, 3) uint8; ``depth`` (H, W, 1) float32 metres. Camera calibration is in
+``info['intrinsics']`` (3x3) and ``info['extrinsics']`` (4x4 camera->world, OpenCV).
+
+Actions:
+- ``action_mode='pose'``: Box(6) = suction point (3, inside the bin region) + outward normal (3);
+  the cup approaches along ``-normal`` (normalised here).
+- ``action_mode='pixel'``: Box(2) in [-1, 1] = (column, row) of the depth image; the point is the
+  back-projected depth there and the normal the camera's estimate at that point.
+
+Any unusable action (wrong shape, NaN/inf, out of range, zero normal, a pixel without depth) is
+answered with ``outcome='invalid_action'`` and counts as a failed attempt; it never raises, so a
+policy bug cannot crash a long evaluation (``info['invalid_reason']`` says what was wrong).
+
+One step is one physical pick attempt (see ``grasp.py``); reward 1 when a parcel is delivered.
+``terminated`` when the bin is clear (``info['reason']='cleared'``) or after
+``max_consecutive_failures`` failures in a row (``'consecutive_failures'``); ``truncated`` at
+``max_attempts`` (``'max_attempts'``).
+
+Known-answer scenes: ``EnvConfig.scene_factory`` (or ``reset(options={'scene_factory': f})``) is a
+callable ``(sim, seed) -> Scene`` used instead of ``build_pile``, e.g. ``custom_scene.BoxScene``.
+Replays: with ``record_dir`` set, each episode is written to ``record_dir/episode_<k>_seed<s>.rrd``
+(``self.replay_path``; ``self.recorder`` is the live ``EpisodeRecorder``).
+
+Speed: after every reset or attempt the settled parcels are put to sleep (Bullet's own
+deactivation), so moves that do not touch the pile cost little; contact wakes the touched island.
+Free-space moves are collision-checked kinematically; the approach runs at the simulator's step and
+lift/transport at ``GraspConfig.carry_dt`` with fewer solver iterations (see ``grasp.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pybullet as p
+from gymnasium import spaces
+
+from parcelpick_env.camera.camera import Camera
+from parcelpick_env.camera.frame import CameraFrame
+from parcelpick_env.envs.config import EnvConfig
+from parcelpick_env.envs.grasp import PickExecutor, PickResult
+from parcelpick_env.robot.arm import Gen3Arm
+from parcelpick_env.scene.scene import Scene
+from parcelpick_env.sim.simulator import Simulator
+
+OUT_OF_BIN_TOLERANCE = 0.01  # m: a COM this far beyond the inner walls has left the bin
+
+
+class ParcelPickEnv(gym.Env):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
+
+    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None, **overrides: Any) -> None:
+        cfg = config or EnvConfig()
+        if overrides:
+            cfg = dataclasses.replace(cfg, **overrides)
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.config = cfg
+        self.render_mode = render_mode
+        self.sim = Simulator(cfg.sim)
+        self.camera = Camera(cfg.camera)
+        # The first two renders of a fresh EGL context shade differently from all later ones; render
+        # them now so reset(seed) gives bit-identical images from the first episode on.
+        for _ in range(2):
+            self.camera._render(self.sim)
+        self.arm: Gen3Arm | None = None
+        self.executor: PickExecutor | None = None
+        self.scene: Scene | None = None
+        self.frame: CameraFrame | None = None
+        self.recorder = None
+        self.replay_path: Path | None = None
+        self._ready_q: np.ndarray | None = None
+        self._library = None
+        self._episode = -1
+        self._stats: dict[str, Any] = {}
+
+        h, w = cfg.camera.height, cfg.camera.width
+        n = cfg.num_points
+        self.observation_space = spaces.Dict({
+            "points": spaces.Box(-10.0, 10.0, (n, 3), np.float32),
+            "normals": spaces.Box(-1.0, 1.0, (n, 3), np.float32),
+            "rgb": spaces.Box(0, 255, (h, w, 3), np.uint8),
+            "depth": spaces.Box(0.0, float(cfg.camera.far), (h, w, 1), np.float32),
+        })
+        self._bin = cfg.bin
+        if cfg.action_mode == "pose":
+            lo, hi = self._bin_box()
+            self.action_space = spaces.Box(np.concatenate([lo, -np.ones(3)]).astype(np.float32),
+                                           np.concatenate([hi, np.ones(3)]).astype(np.float32), dtype=np.float32)
+        else:
+            self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+    # ------------------------------------------------------------------------------------ helpers
+    def _bin_box(self) -> tuple[np.ndarray, np.ndarray]:
+        spec, m = self._bin, self.config.action_margin
+        cx, cy = spec.center_xy
+        sx, sy = spec.inner_size
+        lo = np.array([cx - sx / 2 - m, cy - sy / 2 - m, spec.floor_z - m])
+        hi = np.array([cx + sx / 2 + m, cy + sy / 2 + m, spec.floor_z + 1.0])  # piles can top the rim
+        return lo, hi
+
+    def _build_scene(self, seed: int, factory) -> Scene:
+        cfg = self.config
+        if factory is not None:
+            return factory(self.sim, seed)
+        from parcelpick_env.assets.library import AssetLibrary
+        from parcelpick_env.scene.config import PileConfig
+        from parcelpick_env.scene.pile import build_pile
+
+        if self._library is None:
+            self._library = AssetLibrary.default(cfg.asset_seed)
+        pile = PileConfig(num_parcels=cfg.num_parcels, layout=cfg.layout, object_set=cfg.object_set,
+                          split=cfg.split, bin=self._bin)
+        return build_pile(self.sim, pile, seed, self._library)
+
+    def _sleep_parcels(self) -> None:
+        """Bullet's deactivation for the resting pile: contact wakes it again."""
+        c = self.sim.client
+        for ps in self.scene.parcels:
+            p.changeDynamics(ps.body_id, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=c)
+            p.changeDynamics(ps.body_id, -1, activationState=p.ACTIVATION_STATE_SLEEP, physicsClientId=c)
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        self.frame = frame = self.camera.capture(self.sim, self.scene, self.np_random)
+        n, total = self.config.num_points, len(frame.points)
+        if total == 0:
+            idx = np.zeros(0, dtype=np.int64)
+        elif total >= n:
+            idx = np.sort(self.np_random.choice(total, n, replace=False))
+        else:
+            idx = np.concatenate([np.arange(total), np.sort(self.np_random.choice(total, n - total, replace=True))])
+        points = np.zeros((n, 3), np.float32)
+        normals = np.zeros((n, 3), np.float32)
+        normals[:, 2] = 1.0
+        if len(idx):
+            points[:] = frame.points[idx]
+            normals[:] = frame.normals[idx]
+        np.clip(points, -10.0, 10.0, out=points)
+        np.clip(normals, -1.0, 1.0, out=normals)
+        return {"points": points, "normals": normals, "rgb": frame.rgb.astype(np.uint8),
+                "depth": frame.depth[..., None].astype(np.float32)}
+
+    def _info(self, **extra: Any) -> dict[str, Any]:
+        s = self._stats
+        info = {
+            "attempts": s["attempts"], "successes": s["successes"], "parcels_placed": s["placed"],
+            "parcels_cleared": s["cleared"], "parcels_remaining": len(self.scene.parcels),
+            "parcels_lost": s["lost"],
+            "R_grasp": s["successes"] / s["attempts"] if s["attempts"] else 0.0,
+            "R_object": s["cleared"] / s["placed"] if s["placed"] else 0.0,
+            "consecutive_failures": s["consecutive"],
+            "intrinsics": self.frame.intrinsics.copy(), "extrinsics": self.frame.extrinsics.copy(),
+            "scene_seed": self.scene.seed,
+        }
+        info.update(extra)
+        return info
+
+    def _parse_action(self, action: Any) -> tuple[np.ndarray | None, np.ndarray | None, str | None]:
+        """(point, unit normal, None) or (None, None, why it is invalid)."""
+        try:
+            a = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            return None, None, "not numeric"
+        if a.shape != self.action_space.shape:
+            return None, None, f"shape {a.shape} != {self.action_space.shape}"
+        if not np.all(np.isfinite(a)):
+            return None, None, "NaN or inf"
+        lo, hi = self.action_space.low.astype(np.float64), self.action_space.high.astype(np.float64)
+        if np.any(a < lo - 1e-6) or np.any(a > hi + 1e-6):
+            return None, None, "out of range"
+        if self.config.action_mode == "pose":
+            normal = a[3:]
+            norm = float(np.linalg.norm(normal))
+            if norm < 1e-6:
+                return None, None, "zero normal"
+            return a[:3], normal / norm, None
+        return self._pixel_to_pose(a)
+
+    def _pixel_to_pose(self, a: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, str | None]:
+        frame = self.frame
+        col = int(round((a[0] + 1) / 2 * (frame.width - 1)))
+        row = int(round((a[1] + 1) / 2 * (frame.height - 1)))
+        lookup = np.full((frame.height, frame.width), -1, dtype=np.int64)
+        lookup[frame.point_pixels[:, 0], frame.point_pixels[:, 1]] = np.arange(len(frame.points))
+        k = lookup[row, col]
+        if k < 0:
+            return None, None, f"no depth at pixel ({row}, {col})"
+        normal = frame.normals[k].astype(np.float64)
+        norm = float(np.linalg.norm(normal))
+        if not np.isfinite(norm) or norm < 1e-6:
+            return None, None, "no normal at pixel"
+        return frame.points[k].astype(np.float64), normal / norm, None
+
+    def _link_chain(self, q: np.ndarray) -> np.ndarray:
+        tip, _, _, origins = self.arm.kin.forward(q)
+        base = np.asarray(self.arm.config.base_position)
+        return np.vstack([base, origins, tip])
+
+    def _drop_departed(self) -> int:
+        """Forget delivered parcels; remove those that fell out of the bin. Returns how many fell out."""
+        spec = self.scene.bin
+        lo = np.asarray(spec.center_xy) - np.asarray(spec.inner_size) / 2 - OUT_OF_BIN_TOLERANCE
+        hi = np.asarray(spec.center_xy) + np.asarray(spec.inner_size) / 2 + OUT_OF_BIN_TOLERANCE
+        kept, lost = [], 0
+        for ps in self.scene.parcels:
+            if not self.sim.has_body(ps.body_id):
+                continue
+            ps.position, ps.orientation = self.sim.body_pose(ps.body_id)
+            com = ps.world_com()
+            if np.all(com[:2] > lo) and np.all(com[:2] < hi) and com[2] > spec.floor_z - OUT_OF_BIN_TOLERANCE:
+                kept.append(ps)
+            else:
+                self.sim.remove(ps.body_id)
+                lost += 1
+        for k, ps in enumerate(kept):
+            ps.object_id = k
+        self.scene.parcels = kept
+        return lost
+
+    def _settle_against_arm(self, steps: int = 240) -> None:
+        """A parcel overhanging the near wall can overlap the arm, which joins the world after the pile
+        is built: hold the arm at home and let contact push such parcels clear, then settle again."""
+        if self.arm.first_penetration(set(), depth=1e-4) is None:
+            return
+        self.arm.hold(steps, lambda: self.sim.step(1), self.sim.config.timestep)
+        bodies = [ps.body_id for ps in self.scene.parcels]
+        self.sim.settle(bodies, max_steps=self.config.grasp.max_post_settle_steps)
+        self._drop_departed()
+
+    # ------------------------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        options = options or {}
+        if self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+        factory = options.get("scene_factory", self.config.scene_factory)
+        scene_seed = int(self.np_random.integers(0, 2**31 - 1))
+        self.scene = self._build_scene(scene_seed, factory)
+        self.arm = Gen3Arm(self.sim.client, self.config.arm)
+        self.executor = PickExecutor(self.sim, self.arm, self.config.grasp, self.config.suction)
+        if self._ready_q is None:
+            centre = np.array([*self.scene.bin.center_xy, self.scene.bin.floor_z + self.config.grasp.ready_height])
+            self._ready_q = self.arm.ik(centre, np.array([0.0, 0.0, -1.0]),
+                                        seed=np.asarray(self.config.arm.ik_seed, dtype=np.float64))
+        if self._ready_q is not None:
+            self.executor.set_ready_seed(self._ready_q)
+        self._settle_against_arm()
+        self._sleep_parcels()
+        self._episode += 1
+        placed = len(self.scene.parcels)
+        self._stats = {"attempts": 0, "successes": 0, "placed": placed, "cleared": 0, "lost": 0,
+                       "consecutive": 0, "done": placed == 0}
+        obs = self._observe()
+        if self.config.record_dir is not None:
+            from parcelpick_env.envs.replay import EpisodeRecorder
+
+            name = f"episode_{self._episode:04d}_seed{scene_seed}.rrd"
+            self.replay_path = Path(self.config.record_dir) / name
+            self.recorder = EpisodeRecorder(self.replay_path, episode_id=name[:-4],
+                                            max_points=self.config.record_points)
+            self.recorder.log_observation(0, self.frame, self.scene)
+        return obs, self._info(reason="cleared" if placed == 0 else None)
+
+    def step(self, action: Any):
+        if self.scene is None:
+            raise RuntimeError("call reset() before step()")
+        s = self._stats
+        point, normal, why = self._parse_action(action)
+        s["attempts"] += 1
+        extra: dict[str, Any] = {}
+        if why is not None:
+            result = PickResult("invalid_action", failure_cause=why)
+            extra["invalid_reason"] = why
+        else:
+            result = self.executor.attempt(self.scene, point, normal)
+            if result.dynamic_steps > 0:
+                bodies = [ps.body_id for ps in self.scene.parcels if self.sim.has_body(ps.body_id)]
+                if bodies:  # the rest of the pile comes to rest (cheaper solver, as the pile builder does)
+                    with self.sim.physics_overrides(solver_iterations=self.config.grasp.carry_solver_iterations):
+                        self.sim.settle(bodies, max_steps=self.config.grasp.max_post_settle_steps)
+            lost = self._drop_departed()
+            s["lost"] += lost
+            self._sleep_parcels()
+        reward = 0.0
+        if result.outcome == "success":
+            s["successes"] += 1
+            s["cleared"] += 1
+            s["consecutive"] = 0
+            reward = 1.0
+        else:
+            s["consecutive"] += 1
+        obs = self._observe()
+        reason = None
+        terminated = truncated = False
+        if not self.scene.parcels:
+            terminated, reason = True, "cleared"
+        elif s["consecutive"] >= self.config.max_consecutive_failures:
+            terminated, reason = True, "consecutive_failures"
+        elif s["attempts"] >= self.config.attempt_limit:
+            truncated, reason = True, "max_attempts"
+        info = self._info(outcome=result.outcome, failure_cause=result.failure_cause,
+                          failure_phase=result.failure_phase, seal=result.seal,
+                          contact_point=result.contact_point, sim_time=result.sim_time, reason=reason,
+                          **extra)
+        if self.recorder is not None:
+            k = s["attempts"]
+            self.recorder.log_action(k, point, normal)
+            self.recorder.log_result(k, result, link_chain=self._link_chain if self.arm else None,
+                                     metrics={"R_grasp": info["R_grasp"], "R_object": info["R_object"],
+                                              "reward": reward})
+            self.recorder.log_observation(k, self.frame, self.scene)
+            if terminated or truncated:
+                self.recorder.close()
+                self.recorder = None
+        return obs, reward, terminated, truncated, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self.frame is None:
+            raise RuntimeError("call reset() before render()")
+        return self.frame.rgb.copy()
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+        if getattr(self, "sim", None) is not None and self.sim.client is not None:
+            self.sim.close()

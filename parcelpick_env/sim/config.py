@@ -1,0 +1,46 @@
+"""Physics settings of the pybullet world, with their defaults in one place."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Integrator and settling settings.
+
+    Settling stops when every watched body moves slower than the velocity tolerances (checked every
+    ``check_interval`` steps, ``settle_checks`` checks in a row), or after ``max_settle_steps``.
+    """
+
+    timestep: float = 1.0 / 240.0
+    solver_iterations: int = 50
+    gravity: float = 9.8
+    linear_velocity_tol: float = 0.01  # m/s
+    angular_velocity_tol: float = 0.1  # rad/s
+    max_settle_steps: int = 2400
+    check_interval: int = 10
+    settle_checks: int = 2
+    collision_margin: float = 0.001  # m, kept small so parcels rest on their true surface
+    max_hull_vertices: int = 64  # collision hulls are reduced to this many vertices for speed
+    # Load pybullet's EGL renderer plugin (OpenGL rendering for the camera) when the client starts:
+    # shapes created before the plugin is loaded are invisible to it, so it cannot be added later.
+    egl_rendering: bool = True
+
+    def __post_init__(self) -> None:
+        positive = {
+            "timestep": self.timestep, "gravity": self.gravity,
+            "linear_velocity_tol": self.linear_velocity_tol, "angular_velocity_tol": self.angular_velocity_tol,
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise ValueError(f"SimConfig.{name} must be > 0, got {value!r}")
+        if self.timestep > 0.05:
+            raise ValueError(f"SimConfig.timestep {self.timestep} s is too coarse (max 0.05 s)")
+        for name in ("solver_iterations", "max_settle_steps", "check_interval", "settle_checks"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"SimConfig.{name} must be >= 1, got {getattr(self, name)!r}")
+        if not 0 <= self.collision_margin < 0.05:
+            raise ValueError(f"SimConfig.collision_margin must be in [0, 0.05), got {self.collision_margin}")
+        if self.max_hull_vertices < 8:
+            raise ValueError(f"SimConfig.max_hull_vertices must be >= 8, got {self.max_hull_vertices}")

@@ -1,0 +1,358 @@
+"""One headless pybullet world: bin, parcels, stepping and settling.
+
+Parcels collide as the convex hull of their true mesh (reduced to a few dozen vertices, which is
+what keeps 30-parcel piles fast) and render as the true mesh with its per-face colours, so the
+camera's RGB and segmentation show exactly the surface the suction scorer ray-casts. Collision
+shapes are created from vertex arrays; visuals are written once per asset as one OBJ per colour
+(pybullet's EGL renderer only draws meshes loaded from files) into a per-simulator temporary
+directory that ``close()`` removes.
+
+pybullet reports a body's pose as its inertial (centre-of-mass) frame. Everything public here
+speaks the parcel's mesh frame instead: ``body_pose``/``set_body_pose`` convert.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import io
+import logging
+import shutil
+import tempfile
+import weakref
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+import pybullet as pb
+import trimesh
+
+from parcelpick_env.assets.parcel import ParcelAsset
+from parcelpick_env.scene.scene import BinSpec
+from parcelpick_env.sim.config import SimConfig
+
+log = logging.getLogger(__name__)
+
+BIN_RGBA = (0.45, 0.47, 0.50, 1.0)
+GROUND_RGBA = (0.30, 0.30, 0.30, 1.0)
+
+# Geometry derived from an asset once per process (the asset is immutable).
+_GEOMETRY_CACHE: "weakref.WeakKeyDictionary[ParcelAsset, dict]" = weakref.WeakKeyDictionary()
+
+
+def _farthest_points(points: np.ndarray, k: int) -> np.ndarray:
+    """Indices of ``k`` farthest-point samples (deterministic: starts at the point farthest from the mean)."""
+    chosen = [int(np.argmax(((points - points.mean(0)) ** 2).sum(1)))]
+    dist = ((points - points[chosen[0]]) ** 2).sum(1)
+    for _ in range(k - 1):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, ((points - points[nxt]) ** 2).sum(1))
+    return np.asarray(chosen)
+
+
+def _asset_geometry(asset: ParcelAsset, max_hull_vertices: int) -> dict:
+    """Hull vertices for collision, and one triangle soup per face colour for rendering.
+
+    Colours are per-part ``rgbaColors`` rather than a texture: after ``resetSimulation`` the EGL
+    renderer binds stale texture handles, which made RGB depend on what a simulator drew before.
+    """
+    key = ("geometry", max_hull_vertices)
+    cached = _GEOMETRY_CACHE.setdefault(asset, {})
+    if key in cached:
+        return cached[key]
+    mesh: trimesh.Trimesh = asset.mesh
+    hull = mesh.convex_hull.vertices
+    if len(hull) > max_hull_vertices:
+        hull = hull[_farthest_points(hull, max_hull_vertices)]
+    face_colours = np.asarray(mesh.visual.face_colors, dtype=np.uint8)[:, :3]
+    palette, face_palette = np.unique(face_colours, axis=0, return_inverse=True)
+    face_palette = face_palette.reshape(-1)
+    parts = []
+    for colour_index, colour in enumerate(palette):
+        faces = np.flatnonzero(face_palette == colour_index)
+        obj = io.StringIO()
+        obj.write("# ParcelPick parcel part (one colour)\n")
+        np.savetxt(obj, mesh.vertices, fmt="v %.6f %.6f %.6f")
+        np.savetxt(obj, mesh.face_normals[faces], fmt="vn %.6f %.6f %.6f")
+        f = mesh.faces[faces] + 1
+        nrm = np.repeat(np.arange(1, len(faces) + 1)[:, None], 3, axis=1)
+        np.savetxt(obj, np.stack([f, nrm], axis=2).reshape(len(faces), 6), fmt="f %d//%d %d//%d %d//%d")
+        parts.append((obj.getvalue(), (*(colour / 255.0), 1.0)))
+    geometry = {"hull": np.ascontiguousarray(hull, dtype=np.float64), "parts": parts}
+    cached[key] = geometry
+    return geometry
+
+
+_EGL_BROKEN = False  # set once per process when the plugin cannot be loaded
+
+
+def _load_egl(client: int) -> int:
+    """Load pybullet's EGL renderer plugin into ``client``; returns the plugin id or -1."""
+    global _EGL_BROKEN
+    if _EGL_BROKEN:
+        return -1
+    spec = importlib.util.find_spec("eglRenderer")  # pybullet ships it as a top-level extension module
+    plugin = -1
+    if spec is not None and spec.origin:
+        try:
+            plugin = pb.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=client)
+        except pb.error:
+            plugin = -1
+    if plugin < 0:
+        _EGL_BROKEN = True
+        log.warning("pybullet's EGL renderer plugin could not be loaded; cameras will use the TinyRenderer")
+    return plugin
+
+
+class Simulator:
+    """Owns one pybullet DIRECT client. Use as a context manager or call ``close()``."""
+
+    def __init__(self, config: SimConfig | None = None) -> None:
+        self.config = config or SimConfig()
+        self.client = pb.connect(pb.DIRECT)
+        if self.client < 0:
+            raise RuntimeError("could not start a pybullet DIRECT client")
+        self._tmpdir = Path(tempfile.mkdtemp(prefix="parcelpick_sim_"))
+        self._com: dict[int, np.ndarray] = {}  # body id -> COM in the body (mesh) frame
+        self._files: dict[int, tuple[ParcelAsset, list[str]]] = {}  # id(asset) -> (asset, OBJ paths)
+        self.steps_taken = 0
+        self.egl_plugin = _load_egl(self.client) if self.config.egl_rendering else -1
+        self._configure()
+
+    @property
+    def egl_enabled(self) -> bool:
+        """True when OpenGL (EGL) rendering is available to cameras on this client."""
+        return self.egl_plugin >= 0
+
+    # ----------------------------------------------------------------- world
+    def _configure(self) -> None:
+        cfg = self.config
+        pb.setGravity(0, 0, -cfg.gravity, physicsClientId=self.client)
+        pb.setPhysicsEngineParameter(
+            fixedTimeStep=cfg.timestep, numSolverIterations=cfg.solver_iterations,
+            deterministicOverlappingPairs=1, physicsClientId=self.client,
+        )
+
+    def reset(self) -> None:
+        """Empty the world (bodies, shapes) and re-apply the configuration."""
+        self._require_open()
+        pb.resetSimulation(physicsClientId=self.client)
+        self._com.clear()
+        self.steps_taken = 0
+        self._configure()
+
+    def close(self) -> None:
+        if self.client is not None and self.client >= 0:
+            try:
+                if self.egl_plugin >= 0:
+                    pb.unloadPlugin(self.egl_plugin, physicsClientId=self.client)
+                    self.egl_plugin = -1
+                pb.disconnect(physicsClientId=self.client)
+            except pb.error:  # already disconnected
+                pass
+        self.client = None
+        shutil.rmtree(self._tmpdir, ignore_errors=True)
+
+    def __enter__(self) -> "Simulator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # best effort; close() is the contract
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def _require_open(self) -> None:
+        if self.client is None:
+            raise RuntimeError("Simulator is closed")
+
+    # ----------------------------------------------------------------- time
+    def step(self, n: int = 1) -> None:
+        self._require_open()
+        if int(n) < 0:
+            raise ValueError(f"cannot step a negative number of times ({n})")
+        for _ in range(int(n)):
+            pb.stepSimulation(physicsClientId=self.client)
+        self.steps_taken += int(n)
+
+    def is_at_rest(self, body_ids: Iterable[int]) -> bool:
+        cfg = self.config
+        for b in body_ids:
+            lin, ang = pb.getBaseVelocity(b, physicsClientId=self.client)
+            if (lin[0] ** 2 + lin[1] ** 2 + lin[2] ** 2 > cfg.linear_velocity_tol ** 2
+                    or ang[0] ** 2 + ang[1] ** 2 + ang[2] ** 2 > cfg.angular_velocity_tol ** 2):
+                return False
+        return True
+
+    def settle(self, body_ids: Sequence[int], max_steps: int | None = None) -> int:
+        """Step until every body in ``body_ids`` is at rest; returns the number of steps taken.
+
+        At rest means below the velocity tolerances at ``settle_checks`` consecutive checks, so a
+        body at the top of a bounce does not count. Capped at ``max_steps`` (config default).
+        """
+        self._require_open()
+        cfg = self.config
+        cap = cfg.max_settle_steps if max_steps is None else int(max_steps)
+        ids = list(body_ids)
+        missing = [b for b in ids if not self.has_body(b)]
+        if missing:
+            raise ValueError(f"cannot settle bodies that are not in the simulator: {missing}")
+        steps, calm = 0, 0
+        while steps < cap:
+            n = min(cfg.check_interval, cap - steps)
+            self.step(n)
+            steps += n
+            calm = calm + 1 if self.is_at_rest(ids) else 0
+            if calm >= cfg.settle_checks:
+                break
+        return steps
+
+    # ----------------------------------------------------------------- bodies
+    def add_bin(self, spec: BinSpec) -> list[int]:
+        """Static bin (floor + four walls, one compound body) on a ground slab; returns [bin, ground]."""
+        self._require_open()
+        boxes = spec.meshes()
+        half = [list(m.extents / 2) for m in boxes]
+        centres = [list(m.bounds.mean(axis=0)) for m in boxes]
+        col = pb.createCollisionShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=half,
+                                           collisionFramePositions=centres, physicsClientId=self.client)
+        vis = pb.createVisualShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=half,
+                                        visualFramePositions=centres, rgbaColors=[BIN_RGBA] * len(boxes),
+                                        physicsClientId=self.client)
+        bin_id = pb.createMultiBody(0.0, col, vis, physicsClientId=self.client)
+        ground_half = [3.0, 3.0, 0.01]
+        gz = spec.floor_z - spec.wall_thickness - ground_half[2]
+        gcol = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=ground_half, physicsClientId=self.client)
+        gvis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=ground_half, rgbaColor=GROUND_RGBA,
+                                    physicsClientId=self.client)
+        ground_id = pb.createMultiBody(0.0, gcol, gvis, basePosition=[*spec.center_xy, gz],
+                                       physicsClientId=self.client)
+        for b in (bin_id, ground_id):
+            pb.changeDynamics(b, -1, lateralFriction=0.6, restitution=0.0, physicsClientId=self.client)
+        return [bin_id, ground_id]
+
+    def _visual_files(self, asset: ParcelAsset, geo: dict) -> list[str]:
+        """One OBJ per colour part of ``asset``, written once per simulator (EGL only draws files)."""
+        key = id(asset)
+        if key not in self._files or self._files[key][0] is not asset:
+            stem = f"parcel_{len(self._files):05d}"
+            paths = []
+            for i, (obj, _) in enumerate(geo["parts"]):
+                path = self._tmpdir / f"{stem}_{i}.obj"
+                path.write_text(obj)
+                paths.append(str(path))
+            self._files[key] = (asset, paths)
+        return self._files[key][1]
+
+    def _parcel_shapes(self, asset: ParcelAsset) -> tuple[int, int]:
+        geo = _asset_geometry(asset, self.config.max_hull_vertices)
+        paths = self._visual_files(asset, geo)
+        col = pb.createCollisionShape(pb.GEOM_MESH, vertices=geo["hull"].tolist(), physicsClientId=self.client)
+        vis = pb.createVisualShapeArray([pb.GEOM_MESH] * len(paths), fileNames=paths,
+                                        rgbaColors=[list(rgba) for _, rgba in geo["parts"]],
+                                        physicsClientId=self.client)
+        if col < 0 or vis < 0:
+            raise RuntimeError(f"pybullet could not create shapes for asset {asset.asset_id}")
+        return col, vis
+
+    def add_parcel(self, asset: ParcelAsset, position: Sequence[float], orientation: Sequence[float],
+                   friction: float) -> int:
+        """Add a dynamic parcel with its mesh frame at ``position``/``orientation`` (xyzw)."""
+        self._require_open()
+        position = np.asarray(position, dtype=np.float64)
+        orientation = np.asarray(orientation, dtype=np.float64)
+        if position.shape != (3,) or orientation.shape != (4,):
+            raise ValueError(f"position must be (3,) and orientation (4,) xyzw, got {position.shape}, {orientation.shape}")
+        if not (np.isfinite(position).all() and np.isfinite(orientation).all()):
+            raise ValueError("parcel pose must be finite")
+        norm = np.linalg.norm(orientation)
+        if norm < 1e-9:
+            raise ValueError("orientation quaternion has zero norm")
+        if not (np.isfinite(friction) and friction >= 0):
+            raise ValueError(f"friction must be a finite non-negative number, got {friction!r}")
+        col, vis = self._parcel_shapes(asset)
+        com = np.asarray(asset.com, dtype=np.float64)
+        body = pb.createMultiBody(
+            baseMass=float(asset.mass), baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
+            basePosition=position.tolist(), baseOrientation=(orientation / norm).tolist(),
+            baseInertialFramePosition=com.tolist(), physicsClientId=self.client,
+        )
+        if body < 0:
+            raise RuntimeError(f"pybullet could not create a body for asset {asset.asset_id}")
+        pb.changeDynamics(
+            body, -1, lateralFriction=float(friction), spinningFriction=0.01, rollingFriction=0.01,
+            restitution=0.0, collisionMargin=self.config.collision_margin, physicsClientId=self.client,
+        )
+        self._com[body] = com
+        return body
+
+    def remove(self, body_id: int) -> None:
+        """Remove any body of this world (parcels, or bodies others loaded into ``client``)."""
+        self._require_open()
+        if not self.has_body(body_id):
+            raise ValueError(f"body {body_id} is not in this simulator")
+        pb.removeBody(body_id, physicsClientId=self.client)
+        self._com.pop(body_id, None)
+
+    def has_body(self, body_id: int) -> bool:
+        """Whether ``body_id`` exists in the world now (however it was added or removed)."""
+        self._require_open()
+        try:
+            pb.getBodyInfo(int(body_id), physicsClientId=self.client)
+            return True
+        except pb.error:
+            return False
+
+    def aabb(self, body_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned bounds (lo, hi) of a body's collision shape."""
+        self._require_open()
+        lo, hi = pb.getAABB(body_id, physicsClientId=self.client)
+        return np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+
+    @contextmanager
+    def physics_overrides(self, timestep: float | None = None, solver_iterations: int | None = None) -> Iterator[None]:
+        """Temporarily use another timestep and/or solver iteration count (e.g. a cheap drop phase)."""
+        self._require_open()
+        cfg = self.config
+        if timestep is not None and not 0 < timestep <= 0.05:
+            raise ValueError(f"timestep must be in (0, 0.05], got {timestep}")
+        if solver_iterations is not None and solver_iterations < 1:
+            raise ValueError(f"solver_iterations must be >= 1, got {solver_iterations}")
+        pb.setPhysicsEngineParameter(fixedTimeStep=timestep or cfg.timestep,
+                                     numSolverIterations=int(solver_iterations or cfg.solver_iterations),
+                                     physicsClientId=self.client)
+        try:
+            yield
+        finally:
+            pb.setPhysicsEngineParameter(fixedTimeStep=cfg.timestep, numSolverIterations=cfg.solver_iterations,
+                                         physicsClientId=self.client)
+
+    # ----------------------------------------------------------------- poses
+    def body_pose(self, body_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Mesh-frame (position, orientation xyzw) of a body; pybullet itself reports the COM frame."""
+        self._require_open()
+        pos, orn = pb.getBasePositionAndOrientation(body_id, physicsClientId=self.client)
+        pos, orn = np.asarray(pos, dtype=np.float64), np.asarray(orn, dtype=np.float64)
+        com = self._com.get(body_id)
+        if com is not None:
+            R = np.asarray(pb.getMatrixFromQuaternion(orn.tolist()), dtype=np.float64).reshape(3, 3)
+            pos = pos - R @ com
+        return pos, orn
+
+    def set_body_pose(self, body_id: int, position: Sequence[float], orientation: Sequence[float]) -> None:
+        """Teleport a body so its mesh frame is at ``position``/``orientation`` (xyzw); zeroes velocity."""
+        self._require_open()
+        position = np.asarray(position, dtype=np.float64)
+        orientation = np.asarray(orientation, dtype=np.float64)
+        orientation = orientation / np.linalg.norm(orientation)
+        com = self._com.get(body_id)
+        if com is not None:
+            R = np.asarray(pb.getMatrixFromQuaternion(orientation.tolist()), dtype=np.float64).reshape(3, 3)
+            position = position + R @ com
+        pb.resetBasePositionAndOrientation(body_id, position.tolist(), orientation.tolist(),
+                                           physicsClientId=self.client)
+        pb.resetBaseVelocity(body_id, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)

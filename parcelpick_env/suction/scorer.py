@@ -1,0 +1,206 @@
+"""The one suction scorer of ParcelPick: labels, the env's seal check and the AP evaluator share it.
+
+Everything is geometry on world-frame trimesh meshes (no pybullet): the Open3D ray scenes are
+built once per scene in ``__init__`` and every score is one batched query over all candidates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+import open3d as o3d
+import trimesh
+
+from parcelpick_env.suction.collision import collision_scores
+from parcelpick_env.suction.config import SuctionConfig
+from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, validate_meshes
+from parcelpick_env.suction.seal import SealScene, seal_scores
+from parcelpick_env.suction.wrench import wrench_scores
+
+if TYPE_CHECKING:
+    from parcelpick_env.scene.scene import Scene
+
+NORMAL_TOLERANCE = 1e-2  # |‖n‖ - 1| above this is a caller bug, not rounding
+MAX_BATCH = 65536  # candidates per ray query: bounds the ray buffers to about 150 MB
+
+
+@dataclass
+class SuctionScores:
+    """Per-candidate scores, each (N,) float32 in [0, 1]; ``total`` is their product."""
+
+    seal: np.ndarray
+    wrench: np.ndarray
+    collision: np.ndarray
+    visibility: np.ndarray
+    total: np.ndarray
+
+    def as_array(self) -> np.ndarray:
+        """(N, 4) in the label order seal, wrench, collision, visibility."""
+        return np.stack([self.seal, self.wrench, self.collision, self.visibility], axis=1)
+
+    def __len__(self) -> int:
+        return len(self.total)
+
+
+class SuctionScorer:
+    """Scores suction candidates ``(p, n)`` on a scene of world-frame parcel meshes.
+
+    ``meshes[k]`` is parcel ``k`` (its object id) and ``coms[k]`` its centre of mass; ``obstacles``
+    (bin walls, floor) only block the tool.
+    """
+
+    def __init__(self, meshes: Sequence[trimesh.Trimesh], coms: np.ndarray,
+                 obstacles: Sequence[trimesh.Trimesh] = (),
+                 config: SuctionConfig = SuctionConfig()) -> None:
+        if not isinstance(config, SuctionConfig):
+            raise ValueError(f"config must be a SuctionConfig, got {type(config).__name__}")
+        self.config = config
+        self.meshes = validate_meshes(meshes, "meshes")
+        self.obstacles = validate_meshes(obstacles, "obstacles")
+        coms = np.asarray(coms, dtype=np.float64)
+        if coms.shape != (len(self.meshes), 3) or not np.all(np.isfinite(coms)):
+            raise ValueError(f"coms must be finite with shape ({len(self.meshes)}, 3), got {coms.shape}")
+        self.coms = coms
+        self._seal_scene = SealScene(self.meshes, config)
+        everything = self.meshes + self.obstacles
+        self._collision_scene = build_scene(everything) if everything else None
+        self._parcel_scene: o3d.t.geometry.RaycastingScene | None = None  # built on first use
+
+    @classmethod
+    def from_scene(cls, scene: "Scene", config: SuctionConfig = SuctionConfig()) -> "SuctionScorer":
+        """Scorer for a settled pile: its parcels, their centres of mass, and the bin as obstacles."""
+        return cls(scene.world_meshes(), scene.world_coms(), scene.bin.meshes(), config)
+
+    def __getstate__(self) -> dict:
+        """Pickle the geometry only (Open3D scenes cannot be pickled); they are rebuilt on load."""
+        return {"meshes": self.meshes, "coms": self.coms, "obstacles": self.obstacles,
+                "config": self.config}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["meshes"], state["coms"], state["obstacles"], state["config"])
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.meshes)
+
+    # ------------------------------------------------------------------ scores
+    def seal(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
+        """(N,) seal of the cup on each candidate's own object (0 for object ids < 0)."""
+        points, normals = self._candidates(points, normals)
+        object_ids = self._object_ids(object_ids, len(points))
+        return self._seal(points, normals, object_ids)
+
+    def wrench(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
+        """(N,) wrench score against gravity on a unit mass at the object's COM (0 for ids < 0)."""
+        points, normals = self._candidates(points, normals)
+        object_ids = self._object_ids(object_ids, len(points))
+        return self._wrench(points, normals, object_ids)
+
+    def collision(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(N,) 1 if the tool along ``n`` is free of parcels, bin and floor, else 0."""
+        points, normals = self._candidates(points, normals)
+        return self._collision(points, normals)
+
+    def score(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray,
+              visibility: np.ndarray | None = None) -> SuctionScores:
+        """All four scores and their product; ``visibility`` is per object (M,), None means 1."""
+        points, normals = self._candidates(points, normals)
+        object_ids = self._object_ids(object_ids, len(points))
+        per_object = self._visibility(visibility)
+        valid = object_ids >= 0
+        vis = np.zeros(len(points), dtype=np.float32)
+        vis[valid] = per_object[object_ids[valid]]
+        seal = self._seal(points, normals, object_ids)
+        wrench = self._wrench(points, normals, object_ids)
+        collision = self._collision(points, normals)
+        total = seal * wrench * collision * vis
+        return SuctionScores(seal=seal, wrench=wrench, collision=collision, visibility=vis,
+                             total=total.astype(np.float32))
+
+    def nearest_object(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Object id of the closest parcel surface to each point, and the distance to it.
+
+        With no parcels every id is -1 and every distance inf.
+        """
+        points = self._points(points)
+        if self.num_objects == 0 or len(points) == 0:
+            return np.full(len(points), -1, dtype=np.int64), np.full(len(points), np.inf)
+        if self._parcel_scene is None:
+            self._parcel_scene = build_scene(self.meshes)
+        closest = self._parcel_scene.compute_closest_points(
+            o3d.core.Tensor(points.astype(np.float32)), nthreads=self.config.num_threads)
+        ids = closest["geometry_ids"].numpy().astype(np.int64)
+        ids[ids == O3D_INVALID_ID] = -1
+        distances = np.linalg.norm(closest["points"].numpy().astype(np.float64) - points, axis=1)
+        return ids, distances
+
+    # ------------------------------------------------------------------ helpers
+    def _seal(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
+        return _in_batches(lambda *a: seal_scores(self._seal_scene, *a), points, normals, object_ids)
+
+    def _collision(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        return _in_batches(lambda *a: collision_scores(self._collision_scene, *a, self.config),
+                           points, normals)
+
+    def _wrench(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(points), dtype=np.float32)
+        valid = object_ids >= 0
+        if np.any(valid):
+            out[valid] = wrench_scores(points[valid], normals[valid],
+                                       self.coms[object_ids[valid]], self.config)
+        return out
+
+    @staticmethod
+    def _points(points: np.ndarray, name: str = "points") -> np.ndarray:
+        points = np.asarray(points)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"{name} must have shape (N, 3), got {points.shape}")
+        if not np.issubdtype(points.dtype, np.number):
+            raise ValueError(f"{name} must be numeric, got dtype {points.dtype}")
+        points = points.astype(np.float64)
+        if not np.all(np.isfinite(points)):
+            raise ValueError(f"{name} must be finite (found NaN or inf)")
+        return points
+
+    def _candidates(self, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        points = self._points(points, "points")
+        normals = self._points(normals, "normals")
+        if len(normals) != len(points):
+            raise ValueError(f"points and normals differ in length: {len(points)} vs {len(normals)}")
+        norms = np.linalg.norm(normals, axis=1, keepdims=True)
+        if np.any(np.abs(norms - 1.0) > NORMAL_TOLERANCE):
+            raise ValueError("normals must be unit vectors (found a norm off by more than 1e-2)")
+        return points, normals / norms
+
+    def _object_ids(self, object_ids: np.ndarray, count: int) -> np.ndarray:
+        object_ids = np.asarray(object_ids)
+        if object_ids.shape != (count,):
+            raise ValueError(f"object_ids must have shape ({count},), got {object_ids.shape}")
+        if count and not np.issubdtype(object_ids.dtype, np.integer):
+            raise ValueError(f"object_ids must be integers, got dtype {object_ids.dtype}")
+        object_ids = object_ids.astype(np.int64)
+        if count and object_ids.max() >= self.num_objects:
+            raise ValueError(f"object id {object_ids.max()} out of range for {self.num_objects} objects")
+        return object_ids
+
+    def _visibility(self, visibility: np.ndarray | None) -> np.ndarray:
+        if visibility is None:
+            return np.ones(self.num_objects, dtype=np.float32)
+        visibility = np.asarray(visibility, dtype=np.float64)
+        if visibility.shape != (self.num_objects,):
+            raise ValueError(f"visibility must be per object, shape ({self.num_objects},), "
+                             f"got {visibility.shape}")
+        if not np.all(np.isfinite(visibility)) or np.any(visibility < 0) or np.any(visibility > 1):
+            raise ValueError("visibility ratios must be finite and in [0, 1]")
+        return visibility.astype(np.float32)
+
+
+def _in_batches(fn, *arrays: np.ndarray) -> np.ndarray:
+    """``fn`` over at most ``MAX_BATCH`` candidates at a time, concatenated (bounded memory)."""
+    count = len(arrays[0])
+    if count <= MAX_BATCH:
+        return fn(*arrays)
+    return np.concatenate([fn(*(a[start:start + MAX_BATCH] for a in arrays))
+                           for start in range(0, count, MAX_BATCH)])

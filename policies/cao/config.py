@@ -1,0 +1,95 @@
+"""Every knob of the Cao et al. (SuctionNet baseline) heatmap policy, in one validated dataclass.
+
+The config is saved inside each checkpoint, so a checkpoint always rebuilds the network and the
+pre-processing it was trained with.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+LABEL_CHANNELS = ("seal", "wrench", "collision", "visibility")  # order of the dataset's label columns
+
+
+@dataclass(frozen=True)
+class CaoConfig:
+    """Network input size, backbone, target shapes, training and candidate extraction.
+
+    ``input_height``/``input_width``: observations are resized to this before the network; the
+    heatmaps are resized back to the observation for extraction. ``widths`` are the U-Net's channel
+    counts per level (its depth is ``len(widths)``; the input size must divide by ``2**(len-1)``).
+    ``seal_sigma_px``: the Gaussian splatted at each annotated point's pixel (network pixels).
+    ``seal_channels``: label columns multiplied into the seal target (default: the seal score alone,
+    as in SuctionNet's baseline). ``centre_sigma_scale``: the centre Gaussian's sigma as a fraction of
+    an object's equivalent radius in pixels (sqrt(visible area / pi)), at least ``min_centre_sigma_px``.
+    ``box_filter``/``grid_cell``/``grid_top_k``: the extraction shared with Normal-STD, in
+    observation pixels. ``depth_scale``: metres of relief per unit of the normalised depth channel.
+    """
+
+    input_height: int = 120
+    input_width: int = 160
+    widths: tuple[int, ...] = (8, 16, 32, 64)
+    depth_scale: float = 0.10
+    seal_sigma_px: float = 2.0
+    seal_channels: tuple[str, ...] = ("seal",)
+    centre_sigma_scale: float = 0.5
+    min_centre_sigma_px: float = 1.5
+    box_filter: int = 15
+    grid_cell: int = 10
+    grid_top_k: int = 1024
+    nms_radius: float = 0.02
+    # training
+    epochs: int = 30
+    batch_size: int = 8
+    learning_rate: float = 2e-3
+    weight_decay: float = 1e-4
+    val_fraction: float = 0.1
+    augment_flips: bool = True
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, message: str) -> None:
+            if not ok:
+                raise ValueError(f"CaoConfig: {message}")
+
+        need(self.input_height >= 8 and self.input_width >= 8,
+             f"input must be at least 8x8, got {self.input_width}x{self.input_height}")
+        need(len(self.widths) >= 1 and all(isinstance(w, int) and w > 0 for w in self.widths),
+             f"widths must be positive integers, got {self.widths!r}")
+        stride = 2 ** (len(self.widths) - 1)
+        need(self.input_height % stride == 0 and self.input_width % stride == 0,
+             f"input {self.input_width}x{self.input_height} must divide by {stride} for {len(self.widths)} levels")
+        for name in ("depth_scale", "seal_sigma_px", "centre_sigma_scale", "min_centre_sigma_px",
+                     "learning_rate", "nms_radius"):
+            value = getattr(self, name)
+            need(value > 0, f"{name} must be > 0, got {value!r}")
+        need(len(self.seal_channels) >= 1 and set(self.seal_channels) <= set(LABEL_CHANNELS),
+             f"seal_channels must be a non-empty subset of {LABEL_CHANNELS}, got {self.seal_channels!r}")
+        need(self.box_filter >= 1 and self.box_filter % 2 == 1, f"box_filter must be odd >= 1, got {self.box_filter}")
+        need(self.grid_cell >= 1, f"grid_cell must be >= 1, got {self.grid_cell}")
+        need(self.grid_top_k >= 1, f"grid_top_k must be >= 1, got {self.grid_top_k}")
+        need(self.epochs >= 1 and self.batch_size >= 1, f"epochs and batch_size must be >= 1")
+        need(self.weight_decay >= 0, f"weight_decay must be >= 0, got {self.weight_decay}")
+        need(0.0 <= self.val_fraction < 1.0, f"val_fraction must be in [0, 1), got {self.val_fraction}")
+
+    @property
+    def seal_label_columns(self) -> list[int]:
+        return [LABEL_CHANNELS.index(name) for name in self.seal_channels]
+
+    def to_dict(self) -> dict[str, Any]:
+        out = dataclasses.asdict(self)
+        out["widths"] = list(self.widths)
+        out["seal_channels"] = list(self.seal_channels)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> CaoConfig:
+        data = dict(data)
+        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"CaoConfig: unknown keys {sorted(unknown)}")
+        for key in ("widths", "seal_channels"):
+            if key in data:
+                data[key] = tuple(data[key])
+        return cls(**data)

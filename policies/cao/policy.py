@@ -1,0 +1,136 @@
+"""Cao et al. (SuctionNet baseline) as a Policy: RGB-D -> seal x centre heatmap -> ranked suctions."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from policies.base import Candidates, Policy
+from policies.cao.config import CaoConfig
+from policies.cao.network import CaoNet, prepare_input
+from policies.cao.targets import check_camera
+from policies.heatmap import box_filter, grid_topk, pixels_to_candidates
+
+DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoint.pt")
+REFERENCE_WIDTH = 640  # box_filter and grid_cell are given in pixels of a 640-wide image
+
+
+def load_checkpoint(path: str | os.PathLike) -> tuple[CaoNet, dict[str, Any]]:
+    """Rebuild the network from a checkpoint written by ``policies.cao.train``; returns (net, checkpoint)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"Cao checkpoint {path} not found; train one with "
+                                f"`python -m policies.cao.train --data DIR --out {path}`")
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for truncated / foreign files
+        raise ValueError(f"Cao checkpoint {path} is corrupt or not a checkpoint: {exc}") from exc
+    if not isinstance(checkpoint, dict) or "config" not in checkpoint or "state_dict" not in checkpoint:
+        raise ValueError(f"Cao checkpoint {path} lacks 'config' / 'state_dict' entries")
+    net = CaoNet(CaoConfig.from_dict(checkpoint["config"]))
+    try:
+        net.load_state_dict(checkpoint["state_dict"])
+    except RuntimeError as exc:
+        raise ValueError(f"Cao checkpoint {path} does not match its config: {exc}") from exc
+    return net.eval(), checkpoint
+
+
+def _observation(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Validated (rgb, depth (H, W), intrinsics, extrinsics); a clear ValueError for anything malformed."""
+    for key in ("rgb", "depth"):
+        if key not in obs:
+            raise ValueError(f"Cao policy needs obs[{key!r}] (RGB-D input)")
+    rgb, depth = np.asarray(obs["rgb"]), np.asarray(obs["depth"])
+    if depth.ndim == 3 and depth.shape[-1] == 1:
+        depth = depth[..., 0]
+    if depth.ndim != 2 or min(depth.shape) < 2:
+        raise ValueError(f"obs['depth'] must be (H, W) or (H, W, 1), got {np.shape(obs['depth'])}")
+    if rgb.shape != depth.shape + (3,):
+        raise ValueError(f"obs['rgb'] must be {depth.shape + (3,)} to match the depth image, got {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"obs['rgb'] must be uint8, got {rgb.dtype}")
+    depth = depth.astype(np.float32)
+    if not np.isfinite(depth).all():
+        raise ValueError("obs['depth'] contains NaN or inf; missing returns must be 0")
+    if (depth < 0).any():
+        raise ValueError("obs['depth'] has negative values")
+    if info is None or "intrinsics" not in info or "extrinsics" not in info:
+        raise ValueError("Cao policy needs info['intrinsics'] (3x3) and info['extrinsics'] (4x4 cam->world)")
+    K, T = np.asarray(info["intrinsics"], dtype=np.float64), np.asarray(info["extrinsics"], dtype=np.float64)
+    check_camera(K, T)
+    return rgb, depth, K, T
+
+
+class CaoPolicy(Policy):
+    """Per-pixel seal and object-centre heatmaps from RGB-D; their product ranks suction points.
+
+    ``checkpoint=None`` loads the checkpoint shipped next to this file. Extraction follows SuctionNet:
+    a box filter, the best pixel per grid cell, the top ``grid_top_k`` cells, then NMS and top-k.
+    ``threads``: torch CPU threads for the forward pass (restored afterwards; None keeps torch's
+    setting). One is the default: this small net gains nothing from more, and on a shared, busy CPU
+    OpenMP barriers made two threads ~50x slower than one in our measurements.
+    """
+
+    name = "cao"
+
+    def __init__(self, checkpoint: str | os.PathLike | None = None, *, threads: int | None = 1) -> None:
+        if threads is not None and threads < 1:
+            raise ValueError(f"threads must be >= 1 or None, got {threads}")
+        self.checkpoint_path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+        self.net, checkpoint_data = load_checkpoint(self.checkpoint_path)
+        self.config = CaoConfig.from_dict(checkpoint_data["config"])
+        self.meta: dict[str, Any] = dict(checkpoint_data.get("meta", {}))
+        self.threads = threads
+
+    @torch.inference_mode()
+    def heatmaps(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
+        """(2, H, W) float32 [seal, centre] in [0, 1] at the observation's resolution."""
+        rgb, depth, _, _ = _observation(obs, info)
+        return self._heatmaps(rgb, depth)
+
+    def _heatmaps(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        previous = torch.get_num_threads()
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        try:
+            x = torch.from_numpy(prepare_input(rgb, depth, self.config))[None]
+            maps = torch.sigmoid(self.net(x))
+            if maps.shape[-2:] != depth.shape:
+                maps = F.interpolate(maps, size=depth.shape, mode="bilinear", align_corners=False)
+        finally:
+            torch.set_num_threads(previous)
+        return maps[0].numpy()
+
+    def _extraction_sizes(self, width: int) -> tuple[int, int]:
+        """Box filter and grid cell scaled from the 640-wide reference, so they cover the same patch."""
+        scale = width / REFERENCE_WIDTH
+        box = max(1, int(round(self.config.box_filter * scale))) | 1
+        cell = max(1, int(round(self.config.grid_cell * scale)))
+        return box, cell
+
+    @torch.inference_mode()
+    def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
+                top_k: int = 50) -> Candidates:
+        if top_k < 1:
+            raise ValueError(f"top_k must be >= 1, got {top_k}")
+        rgb, depth, K, T = _observation(obs, info)
+        seal, centre = self._heatmaps(rgb, depth)
+        box, cell = self._extraction_sizes(depth.shape[1])
+        score = box_filter(seal * centre, box, valid=depth > 0)
+        rows, cols, scores = grid_topk(score, cell=cell, top_k=self.config.grid_top_k)
+        points, normals = obs.get("points"), obs.get("normals")
+        if points is not None and normals is not None:
+            points, normals = np.asarray(points), np.asarray(normals)
+            if points.ndim != 2 or points.shape[1:] != (3,) or normals.shape != points.shape:
+                raise ValueError(f"obs['points'] and obs['normals'] must both be (N, 3), got "
+                                 f"{points.shape} and {normals.shape}")
+            if not (np.isfinite(points).all() and np.isfinite(normals).all()):
+                raise ValueError("obs['points'] / obs['normals'] contain NaN or inf")
+        return pixels_to_candidates(rows, cols, scores, depth, K, T, cloud_points=points, cloud_normals=normals,
+                                    nms_radius=self.config.nms_radius, top_k=top_k)

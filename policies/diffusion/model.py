@@ -1,0 +1,98 @@
+"""Diffusion-Suction: a point cloud encoder run once, and a PCDB decoder that denoises a per-point score map."""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from policies.diffusion.config import DiffusionConfig
+from policies.diffusion.pcdb import PCDB
+from policies.diffusion.pointnet2 import build_encoder
+from policies.diffusion.scheduler import DDIMScheduler
+
+
+class DiffusionSuction(nn.Module):
+    def __init__(self, config: DiffusionConfig):
+        super().__init__()
+        self.config = config
+        self.encoder = build_encoder(config)
+        self.decoder = PCDB(self.encoder.out_channels, config.num_channels, config.decoder_dim, config.head_hidden,
+                            config.attention_ratio)
+        self.scheduler = DDIMScheduler(config.train_steps, config.schedule, config.beta_start, config.beta_end)
+
+    # -- score <-> diffusion space -------------------------------------------------------------------------------
+    def to_signal(self, scores: torch.Tensor) -> torch.Tensor:
+        """[0, 1] scores -> x0_bar = (s*2 - 1) * scale."""
+        return (scores * 2.0 - 1.0) * self.config.scale
+
+    def to_scores(self, x: torch.Tensor) -> torch.Tensor:
+        return (x / (2.0 * self.config.scale) + 0.5).clamp(0.0, 1.0)
+
+    # -- networks -------------------------------------------------------------------------------------------------
+    def encode(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Per-point condition features (B, N, F); run once per scene."""
+        return self.encoder(batch)
+
+    def _denoise_loop(self, cond: torch.Tensor, steps: int, generator: torch.Generator | None,
+                      trajectory: list[torch.Tensor] | None = None) -> torch.Tensor:
+        b, _, n = cond.shape
+        x = torch.randn((b, self.config.num_channels, n), generator=generator, device=cond.device, dtype=cond.dtype)
+        if trajectory is not None:
+            trajectory.append(self.to_scores(x).transpose(1, 2))
+        timesteps = self.scheduler.timesteps(steps)
+        for t, prev in zip(timesteps.tolist(), self.scheduler.prev_timesteps(timesteps).tolist()):
+            out = self.decoder(x, torch.full((1,), t, device=cond.device, dtype=torch.long), cond)
+            x, _ = self.scheduler.step(out, t, prev, x, self.config.prediction)
+            if trajectory is not None:
+                trajectory.append(self.to_scores(x).transpose(1, 2))
+        return x  # after the last step (prev = -1) this is the x0 prediction
+
+    def sample(self, features: torch.Tensor, steps: int | None = None, generator: torch.Generator | None = None,
+               return_trajectory: bool = False, point_index: torch.Tensor | None = None
+               ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """DDIM-sample scores (B, N, C) in [0, 1] from cached encoder features (B, N, F).
+
+        ``point_index`` (B, M) denoises only those points (a uniform subset is enough to rank candidates).
+        With ``return_trajectory`` also returns the maps after each step, (steps + 1, B, N, C), noise first.
+        """
+        if point_index is not None:
+            from policies.diffusion.pointnet2 import gather
+            features = gather(features, point_index)
+        cond = self.decoder.embed_condition(features)
+        trajectory: list[torch.Tensor] | None = [] if return_trajectory else None
+        x = self._denoise_loop(cond, steps or self.config.inference_steps, generator, trajectory)
+        scores = self.to_scores(x).transpose(1, 2)
+        if return_trajectory:
+            return scores, torch.stack(trajectory)
+        return scores
+
+    def forward_train(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+                      ) -> dict[str, torch.Tensor]:
+        """Losses for one batch: denoising loss at a random t, plus the public code's loss on the fully sampled map."""
+        cfg = self.config
+        labels = batch["labels"][..., : cfg.num_channels]
+        x0 = self.to_signal(labels).transpose(1, 2)  # (B, C, N)
+        cond = self.decoder.embed_condition(self.encode(batch))
+        b = x0.shape[0]
+        t = torch.randint(0, cfg.train_steps, (b,), generator=generator, device=x0.device)
+        noise = torch.randn(x0.shape, generator=generator, device=x0.device, dtype=x0.dtype)
+        out = self.decoder(self.scheduler.add_noise(x0, noise, t), t, cond)
+        target = noise if cfg.prediction == "eps" else x0
+        losses = {"denoise": F.mse_loss(out, target)}
+        if cfg.map_loss_weight > 0:
+            sampled = self._denoise_loop(cond, cfg.inference_steps, generator)
+            losses["map"] = F.mse_loss(sampled, x0)
+            losses["loss"] = losses["denoise"] + cfg.map_loss_weight * losses["map"]
+        else:
+            losses["loss"] = losses["denoise"]
+        return losses
+
+
+def build_model(config: DiffusionConfig, seed: int = 0) -> DiffusionSuction:
+    """Model with weights initialised from ``seed`` without touching the global torch RNG."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return DiffusionSuction(config)

@@ -1,0 +1,137 @@
+"""PointNet++ sampling and grouping, precomputed in the data pipeline with scipy/Open3D (no Python loops over points).
+
+The network then only gathers by index. Arrays produced per level ``l`` (level 0 = the input points):
+``sa{l}_centres`` (M_l,) indices into level l-1, ``sa{l}_groups`` (M_l, S, nsample) neighbour indices into
+level l-1 (S = number of radii), ``fp{l}_index`` / ``fp{l}_weight`` (N_{l-1}, 3) inverse-distance
+interpolation from level l back to level l-1.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from policies.diffusion.config import DiffusionConfig
+
+
+def grid_sample(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of ``count`` spatially uniform points: one point per occupied voxel, voxel size tuned to the count.
+
+    A fast, deterministic stand-in for farthest-point sampling (which costs O(N*M) and ~0.1 s at 16k->4k).
+    """
+    n = len(points)
+    if count >= n:
+        return np.arange(n)
+    order = np.random.default_rng(0).permutation(n)  # fixed: the same cloud always gives the same sample
+    pts = points[order]
+    lo = pts.min(0)
+    extent = np.maximum(pts.max(0) - lo, 1e-6)
+    voxel = float(np.sqrt(np.sort(extent)[1:].prod() / count))  # surfaces: occupied voxels ~ area / voxel^2
+    first = np.zeros(0, dtype=np.int64)
+    for _ in range(6):
+        cells = np.floor((pts - lo) / voxel).astype(np.int64)
+        dims = cells.max(0) + 1
+        keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]  # 1-D keys: fast unique
+        _, first = np.unique(keys, return_index=True)
+        if len(first) >= count:
+            break
+        voxel *= 0.8 * np.sqrt(len(first) / count)
+    if len(first) >= count:
+        chosen = np.sort(first)[:count]  # first `count` voxels in permutation order: a random subset of voxels
+    else:  # degenerate clouds (all points in a few voxels): fill with the remaining points
+        rest = np.setdiff1d(np.arange(n), first)
+        chosen = np.concatenate([np.sort(first), rest[: count - len(first)]])
+    return order[chosen]
+
+
+def farthest_point_sample(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of Open3D's farthest-point sample (start index 0)."""
+    import open3d as o3d
+
+    if count >= len(points):
+        return np.arange(len(points))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    picked = np.asarray(cloud.farthest_point_down_sample(count).points)
+    _, idx = cKDTree(points).query(picked, k=1)  # Open3D returns points, not indices
+    return idx.astype(np.int64)
+
+
+def sample_indices(points: np.ndarray, count: int, sampler: str) -> np.ndarray:
+    return farthest_point_sample(points, count) if sampler == "fps" else grid_sample(points, count)
+
+
+def ball_group(tree: cKDTree, n: int, centres: np.ndarray, radii: tuple[float, ...], nsample: int,
+               dilation: tuple[int, ...], workers: int = 1) -> np.ndarray:
+    """(M, S, nsample) neighbour indices per radius; short balls are padded with the first (nearest) neighbour.
+
+    One k-NN query serves all scales: scale s takes every d_s-th of the d_s*nsample nearest points inside r_s,
+    so larger radii see a sparser, wider sample of their ball, as PointNet++'s index-order ball query does.
+    """
+    k = min(nsample * max(dilation), n)
+    dist, idx = tree.query(centres, k=k, distance_upper_bound=max(radii), workers=workers)
+    dist, idx = dist.reshape(len(centres), k), idx.reshape(len(centres), k)
+    groups = np.empty((len(centres), len(radii), nsample), dtype=np.int64)
+    for s, (r, d) in enumerate(zip(radii, dilation)):  # loop over the 3 scales only
+        raw = np.arange(nsample) * d
+        cols = np.minimum(raw, k - 1)
+        sel, ok = idx[:, cols], dist[:, cols] <= r
+        ok[:, raw >= k] = False
+        sel = np.where(ok, sel, idx[:, :1])  # column 0 is the centre itself (distance 0)
+        groups[:, s] = sel
+    return groups
+
+
+def interpolation(dst: np.ndarray, src: np.ndarray, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """3-NN inverse-distance weights to carry features from ``src`` points back to ``dst`` points."""
+    k = min(3, len(src))
+    dist, idx = cKDTree(src).query(dst, k=k, workers=workers)
+    dist, idx = dist.reshape(len(dst), k), idx.reshape(len(dst), k)
+    if k < 3:
+        dist = np.concatenate([dist, np.repeat(dist[:, :1], 3 - k, 1)], 1)
+        idx = np.concatenate([idx, np.repeat(idx[:, :1], 3 - k, 1)], 1)
+    w = 1.0 / (dist + 1e-8)
+    return idx.astype(np.int64), (w / w.sum(1, keepdims=True)).astype(np.float32)
+
+
+def level_sizes(config: DiffusionConfig, n: int) -> list[int]:
+    """SA centre counts for an n-point cloud: the configured counts, scaled by n / num_points."""
+    sizes, prev = [], n
+    for m in config.sa_npoints:
+        prev = max(1, min(prev, int(round(m * n / config.num_points))))
+        sizes.append(prev)
+    return sizes
+
+
+def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers: int = 1) -> dict[str, np.ndarray]:
+    """All SA/FP index arrays for one cloud (see module docstring); ``workers``: scipy k-NN threads."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"points must be a non-empty (N, 3) array, got shape {points.shape}")
+    out: dict[str, np.ndarray] = {}
+    level = points
+    for l, (m, radii) in enumerate(zip(level_sizes(config, len(points)), config.sa_radii), start=1):
+        tree = cKDTree(level)
+        centres = sample_indices(level, m, config.sampler).astype(np.int64)
+        out[f"sa{l}_centres"] = centres
+        out[f"sa{l}_groups"] = ball_group(tree, len(level), level[centres], radii, config.nsample,
+                                          config.ball_dilation, workers)
+        out[f"fp{l}_index"], out[f"fp{l}_weight"] = interpolation(level, level[centres], workers)
+        level = level[centres]
+    return out
+
+
+class NeighbourhoodTransform:
+    """Dataset transform: adds the neighbourhood arrays to a sample dict (needs 'points'). Batches with the default
+    collate when every cloud in the batch has the same number of points."""
+
+    def __init__(self, config: DiffusionConfig, inner: Any = None):
+        self.config = config
+        self.inner = inner  # optional transform applied first (e.g. augmentation)
+
+    def __call__(self, sample: Mapping[str, Any]) -> dict[str, Any]:
+        sample = dict(self.inner(sample) if self.inner is not None else sample)
+        if self.config.encoder == "pointnet2":
+            sample.update(compute_neighbourhoods(np.asarray(sample["points"]), self.config))
+        return sample

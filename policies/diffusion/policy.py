@@ -1,0 +1,111 @@
+"""Diffusion-Suction as a ParcelPick policy: observation cloud -> denoised per-point scores -> NMS -> top-k."""
+
+from __future__ import annotations
+
+import copy
+import os
+import warnings
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from policies.base import Candidates, Policy
+from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
+from policies.diffusion.model import DiffusionSuction
+from policies.diffusion.pointnet2 import fold_batchnorm
+from policies.diffusion.neighbourhood import compute_neighbourhoods, grid_sample, sample_indices
+from policies.postprocess import NMS_RADIUS, select_candidates
+
+MIN_POINTS = 16  # below this a cloud cannot hold a suction candidate worth ranking: empty Candidates
+
+
+@dataclass
+class Trajectory:
+    """The last denoising run, for replays: the denoised points and the score maps after each DDIM step."""
+
+    points: np.ndarray  # (M, 3)
+    maps: np.ndarray  # (steps + 1, M, C), noise first, final scores last
+
+
+def _empty() -> Candidates:
+    z = np.zeros((0, 3), dtype=np.float32)
+    return Candidates(points=z, normals=z.copy(), scores=np.zeros(0, dtype=np.float32))
+
+
+class DiffusionSuctionPolicy(Policy):
+    name = "diffusion"
+
+    def __init__(self, checkpoint: str | os.PathLike | None = None, device: str = "cpu", seed: int = 0,
+                 num_threads: int | None = None, inference_steps: int | None = None, decode_points: int | None = None,
+                 nms_radius: float = NMS_RADIUS, record_trajectory: bool = True, model: DiffusionSuction | None = None):
+        """Loads ``checkpoint`` (default: the shipped one); ``model`` instead uses an in-memory model (tests).
+
+        ``decode_points`` > 0 denoises a uniform subset of that many points (faster; candidates need no more).
+        """
+        if num_threads is not None:
+            torch.set_num_threads(int(num_threads))
+        self.device = torch.device(device)
+        if model is None:
+            model, _ = load_model(checkpoint or DEFAULT_CHECKPOINT, map_location=self.device)
+        else:
+            model = copy.deepcopy(model)  # the encoder gets folded below; leave the caller's model alone
+        self.model = model.to(self.device).eval()
+        self.model.encoder = fold_batchnorm(self.model.encoder)  # inference-only speed-up, same outputs
+        self.config = self.model.config
+        self.inference_steps = inference_steps or self.config.inference_steps
+        if self.inference_steps != self.config.inference_steps:
+            warnings.warn(f"sampling with {self.inference_steps} DDIM steps, trained with "
+                          f"{self.config.inference_steps}: the paper finds mismatched step counts lose most AP")
+        self.decode_points = self.config.decode_points if decode_points is None else int(decode_points)
+        self.nms_radius = nms_radius
+        self.record_trajectory = record_trajectory
+        self.last_trajectory: Trajectory | None = None
+        self.reset(seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Reseed the sampler's noise; ``None`` keeps the current noise stream going."""
+        if seed is not None or not hasattr(self, "_generator"):
+            self._generator = torch.Generator(device=self.device).manual_seed(0 if seed is None else int(seed))
+
+    def _validated(self, obs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        if "points" not in obs or "normals" not in obs:
+            raise ValueError(f"observation needs 'points' and 'normals', got keys {sorted(obs)}")
+        points = np.asarray(obs["points"], dtype=np.float32)
+        normals = np.asarray(obs["normals"], dtype=np.float32)
+        if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+            raise ValueError(f"need points and normals of shape (N, 3), got {points.shape} and {normals.shape}")
+        ok = np.isfinite(points).all(1) & np.isfinite(normals).all(1)  # camera dropouts
+        return points[ok], normals[ok]
+
+    def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
+                top_k: int = 50) -> Candidates:
+        points, normals = self._validated(obs)
+        if len(points) < MIN_POINTS:
+            self.last_trajectory = None
+            return _empty()
+        cfg = self.config
+        if len(points) > cfg.num_points:
+            keep = sample_indices(points, cfg.num_points, cfg.sampler)
+            points, normals = points[keep], normals[keep]
+        batch = {"points": points, "normals": normals}
+        if cfg.encoder == "pointnet2":
+            batch.update(compute_neighbourhoods(points, cfg, workers=torch.get_num_threads()))
+        tensors = {k: torch.from_numpy(np.ascontiguousarray(v)).unsqueeze(0).to(self.device) for k, v in batch.items()}
+        subset = None
+        if 0 < self.decode_points < len(points):
+            subset = np.sort(grid_sample(points, self.decode_points))
+        with torch.inference_mode():
+            features = self.model.encode(tensors)
+            index = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
+            out = self.model.sample(features, self.inference_steps, self._generator,
+                                    return_trajectory=self.record_trajectory, point_index=index)
+        scores, trajectory = out if self.record_trajectory else (out, None)
+        if subset is not None:
+            points, normals = points[subset], normals[subset]
+        channel_scores = scores[0].cpu().numpy()
+        if trajectory is not None:
+            self.last_trajectory = Trajectory(points=points, maps=trajectory[:, 0].cpu().numpy())
+        quality = channel_scores.prod(axis=1)  # product of seal, wrench, collision (, visibility)
+        return select_candidates(points, normals, quality, top_k=top_k, nms_radius=self.nms_radius)

@@ -1,0 +1,241 @@
+"""Train Diffusion-Suction.
+
+    python -m policies.diffusion.train --data DIR --out runs/diffusion --preset cpu --steps 3000 --batch-size 4
+
+Resumable (``--resume`` continues from OUT/last.pt with the same data order and noise), deterministic under --seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler, Subset, default_collate
+
+from policies.diffusion.checkpoint import load_checkpoint, save_checkpoint
+from policies.diffusion.config import DiffusionConfig
+from policies.diffusion.metrics import topk_precision
+from policies.diffusion.model import DiffusionSuction, build_model
+from policies.diffusion.neighbourhood import NeighbourhoodTransform
+
+PRESETS = {"paper": DiffusionConfig, "cpu": DiffusionConfig.cpu, "tiny": DiffusionConfig.tiny}
+
+
+class EpochBatches(Sampler[list[int]]):
+    """Batches ``start..stop`` of epoch ``epoch``'s permutation, drawn from (seed, epoch): resuming replays the order."""
+
+    def __init__(self, n: int, batch_size: int, seed: int, epoch: int, start: int, stop: int):
+        self.perm = np.random.default_rng([seed, epoch]).permutation(n)
+        self.bs, self.start, self.stop = batch_size, start, stop
+
+    def __iter__(self) -> Iterator[list[int]]:
+        for i in range(self.start, self.stop):
+            yield self.perm[i * self.bs:(i + 1) * self.bs].tolist()
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+
+def _set_epoch(dataset: Dataset, epoch: int) -> None:
+    """Vary the dataset's augmentation per epoch (ParcelSuctionDataset draws it from (seed, epoch, index))."""
+    base = dataset.dataset if isinstance(dataset, Subset) else dataset
+    if hasattr(base, "set_epoch"):
+        base.set_epoch(epoch)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path, help="dataset root for dataset.torch_dataset.ParcelSuctionDataset")
+    src.add_argument("--synthetic", type=int, metavar="SCENES", help="train on N synthetic box scenes (smoke test)")
+    p.add_argument("--val-data", type=Path, help="validation root (default: hold out --val-fraction of --data)")
+    p.add_argument("--val-fraction", type=float, default=0.05)
+    p.add_argument("--val-scenes", type=int, default=16, help="scenes used per validation")
+    p.add_argument("--out", type=Path, default=Path("runs/diffusion"))
+    p.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
+    p.add_argument("--num-points", type=int)
+    p.add_argument("--encoder", choices=["pointnet2", "pointnet"])
+    p.add_argument("--width", type=float)
+    p.add_argument("--no-normals", action="store_true")
+    p.add_argument("--no-visibility", action="store_true")
+    p.add_argument("--diffusion-steps", type=int, help="training diffusion steps T (default 1000)")
+    p.add_argument("--inference-steps", type=int, help="DDIM steps (default 20)")
+    p.add_argument("--schedule", choices=["linear", "cosine"])
+    p.add_argument("--prediction", choices=["eps", "x0"])
+    p.add_argument("--map-loss-weight", type=float)
+    p.add_argument("--epochs", type=int, default=1)
+    p.add_argument("--steps", type=int, help="optimisation steps (overrides --epochs)")
+    p.add_argument("--batch-size", type=int, default=4)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--workers", type=int, default=0, help="DataLoader workers (neighbourhoods are computed there)")
+    p.add_argument("--val-every", type=int, default=200)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--no-progress", action="store_true")
+    return p.parse_args(argv)
+
+
+def make_config(args: argparse.Namespace) -> DiffusionConfig:
+    overrides = {k: v for k, v in {
+        "num_points": args.num_points, "encoder": args.encoder, "width": args.width,
+        "train_steps": args.diffusion_steps, "inference_steps": args.inference_steps, "schedule": args.schedule,
+        "prediction": args.prediction, "map_loss_weight": args.map_loss_weight}.items() if v is not None}
+    if args.no_normals:
+        overrides["use_normals"] = False
+    if args.no_visibility:
+        overrides["use_visibility"] = False
+    if args.preset == "paper":
+        return DiffusionConfig(**overrides)
+    return PRESETS[args.preset](**overrides)
+
+
+def make_datasets(args: argparse.Namespace, config: DiffusionConfig) -> tuple[Dataset, Dataset]:
+    transform = NeighbourhoodTransform(config)
+    if args.synthetic is not None:
+        from policies.diffusion.synthetic import SyntheticSuctionDataset
+
+        n_val = max(1, args.synthetic // 10)
+        return (SyntheticSuctionDataset(args.synthetic, config.num_points, args.seed, transform),
+                SyntheticSuctionDataset(n_val, config.num_points, args.seed + 1, transform))
+    try:
+        from dataset.torch_dataset import ParcelSuctionDataset
+    except ImportError as e:
+        raise SystemExit(f"error: dataset.torch_dataset.ParcelSuctionDataset is not importable ({e})") from e
+    if not args.data.exists():
+        raise SystemExit(f"error: --data {args.data} does not exist")
+    train = ParcelSuctionDataset(args.data, num_points=config.num_points, augment=True, transform=transform,
+                                 seed=args.seed)
+    if args.val_data is not None:
+        val = ParcelSuctionDataset(args.val_data, num_points=config.num_points, augment=False, transform=transform,
+                                   seed=args.seed)
+        return train, val
+    n = len(train)
+    if n < 2:
+        raise SystemExit(f"error: {args.data} holds {n} scene(s); need >= 2 to hold one out for validation")
+    perm = np.random.default_rng(args.seed).permutation(n)
+    n_val = min(n - 1, max(1, int(round(n * args.val_fraction))))
+    val_base = ParcelSuctionDataset(args.data, num_points=config.num_points, augment=False, transform=transform,
+                                    seed=args.seed)
+    return Subset(train, perm[n_val:].tolist()), Subset(val_base, perm[:n_val].tolist())
+
+
+def to_device(batch: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items() if isinstance(v, torch.Tensor)}
+
+
+@torch.no_grad()
+def validate(model: DiffusionSuction, loader: DataLoader, device: torch.device, seed: int,
+             max_scenes: int) -> dict[str, float]:
+    """Mean training loss at fixed noise, and the top-k precision AP proxy of the sampled scores."""
+    model.eval()
+    g = torch.Generator(device=device).manual_seed(seed)
+    losses, aps, seen = [], [], 0
+    for batch in loader:
+        if seen >= max_scenes:
+            break
+        batch = to_device(batch, device)
+        losses.append(float(model.forward_train(batch, g)["loss"]))
+        scores = model.sample(model.encode(batch), generator=g)
+        aps.append(topk_precision(scores.prod(-1), batch["labels"].prod(-1)))
+        seen += batch["points"].shape[0]
+    model.train()
+    return {"val_loss": float(np.mean(losses)), "val_ap_proxy": float(np.mean(aps))}
+
+
+def lr_at(step: int, total: int, base: float) -> float:
+    """Linear warm-up over 2% of the steps, then cosine decay to 5% of the base rate."""
+    warm = max(1, total // 50)
+    if step < warm:
+        return base * (step + 1) / warm
+    frac = (step - warm) / max(1, total - warm)
+    return base * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * frac)))
+
+
+def train(args: argparse.Namespace) -> dict[str, float]:
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("error: --device cuda but CUDA is not available")
+    config = make_config(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    model = build_model(config, seed=args.seed).to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    start, best = 0, -1.0
+    last = args.out / "last.pt"
+    if args.resume:
+        payload = load_checkpoint(last, map_location=device)
+        if payload["config"] != config:
+            raise SystemExit(f"error: {last} was trained with a different config; drop --resume or match the flags")
+        model.load_state_dict(payload["model"])
+        optimizer.load_state_dict(payload["optimizer"])
+        start, best = payload["step"], payload["extra"].get("best_ap_proxy", -1.0)
+    train_set, val_set = make_datasets(args, config)
+    bs = min(args.batch_size, len(train_set))
+    per_epoch = max(1, len(train_set) // bs)
+    total = args.steps if args.steps is not None else args.epochs * per_epoch
+    val_loader = DataLoader(val_set, batch_size=bs, shuffle=False, num_workers=args.workers)
+    (args.out / "config.json").write_text(json.dumps(config.to_dict(), indent=1))
+    log = (args.out / "log.jsonl").open("a")
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, initial=start, disable=args.no_progress, desc="train", file=sys.stderr)
+    metrics: dict[str, float] = {}
+    model.train()
+    t0 = time.perf_counter()
+    step = start
+    if start == 0 and total > 0:  # the untrained baseline, so the log shows what training bought
+        base = {"step": 0, **validate(model, val_loader, device, args.seed, args.val_scenes)}
+        log.write(json.dumps(base) + "\n")
+        bar.write(json.dumps(base))
+    while step < total:
+        epoch, offset = divmod(step, per_epoch)
+        _set_epoch(train_set, epoch)
+        sampler = EpochBatches(len(train_set), bs, args.seed, epoch, offset, min(per_epoch, offset + total - step))
+        loader = DataLoader(train_set, batch_sampler=sampler, num_workers=args.workers, collate_fn=default_collate,
+                            pin_memory=device.type == "cuda")
+        for batch in loader:
+            for group in optimizer.param_groups:
+                group["lr"] = lr_at(step, total, args.lr)
+            g = torch.Generator(device=device).manual_seed(args.seed * 1_000_003 + step)  # noise fixed by (seed, step)
+            losses = model.forward_train(to_device(batch, device), g)
+            optimizer.zero_grad(set_to_none=True)
+            losses["loss"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            optimizer.step()
+            step += 1
+            bar.update(1)
+            bar.set_postfix({k: f"{float(v.detach()):.4f}" for k, v in losses.items()})
+            if step % args.val_every == 0 or step == total:
+                metrics = {"step": step, "loss": float(losses["loss"].detach()),
+                           "sec_per_step": (time.perf_counter() - t0) / max(1, step - start),
+                           **validate(model, val_loader, device, args.seed, args.val_scenes)}
+                is_best = metrics["val_ap_proxy"] > best
+                best = max(best, metrics["val_ap_proxy"])
+                extra = {"best_ap_proxy": best, "metrics": metrics}
+                save_checkpoint(last, model, optimizer, step, extra)
+                if is_best:
+                    save_checkpoint(args.out / "best.pt", model, None, step, extra)
+                log.write(json.dumps(metrics) + "\n")
+                log.flush()
+                bar.write(json.dumps(metrics))
+    bar.close()
+    log.close()
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> None:
+    train(parse_args(argv))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,198 @@
+"""Normal-STD baseline (SuctionNet-1Billion): flat surfaces are good suction sites.
+
+The normal map of the depth image is smoothed into a flatness heat map: ``heat = 1 - std / max(std)``,
+where ``std`` is the per-pixel standard deviation of the normals over a window. Candidates are the
+best pixel of each grid cell after a box filter. There is nothing to learn.
+
+Resolution and KNN. SuctionNet runs on 1280x720 images with Open3D KNN-224 normals. Here the depth
+image is first subsampled by ``downsample`` (default 2, so 320x240 for the env's 640x480) for speed;
+the windows, the cell and the KNN count are scaled with it (windows by 1/s, KNN by 1/s^2), so the
+normals and the std are taken over the same surface patch as at full resolution. KNN 224 at full
+resolution is therefore KNN 56 at the default ``downsample=2``. Open3D's KNN normal estimation
+dominates the cost (benchmarks/bench_policies.py); ``downsample=4`` (KNN 16) is roughly ten times
+faster for closed-loop use, with a coarser candidate grid.
+
+Workspace. SuctionNet restricts candidates to the objects' image region; a policy here may not see
+ground truth, so candidates are restricted to ``config.workspace`` if set, else to the bounding box of
+the observed cloud (the dataset's clouds are cropped to the bin; the env's are not, so closed-loop
+runs should use ``NormalStdConfig.for_bin``). The bin floor stays eligible: it is flat, and Normal-STD
+has no notion of objects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Mapping
+
+import numpy as np
+import open3d as o3d
+from scipy.ndimage import uniform_filter
+
+from policies.base import Candidates, Policy
+from policies.heatmap import box_filter, grid_topk, pixels_to_world
+from policies.postprocess import select_candidates
+
+if TYPE_CHECKING:
+    from parcelpick_env.scene.scene import BinSpec
+
+# The std normaliser never drops below this: on a scene whose normals barely vary (a flat synthetic
+# render), ``1 - std / max(std)`` would otherwise stretch floating-point round-off to the full [0, 1].
+_STD_FLOOR = 1e-3
+
+
+@dataclass(frozen=True)
+class NormalStdConfig:
+    """Window sizes and ``knn`` are given at full image resolution; see the module docstring."""
+
+    downsample: int = 2
+    knn: int = 224
+    min_knn: int = 16
+    std_window: int = 25
+    smooth_window: int = 15
+    cell: int = 10
+    max_candidates: int = 1024
+    nms_radius: float = 0.02
+    # World-frame box (min xyz, max xyz) candidates must lie in; None: the observed cloud's bounding box.
+    workspace: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("downsample", "knn", "min_knn", "std_window", "smooth_window", "cell", "max_candidates"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"NormalStdConfig.{name} must be a positive integer, got {value!r}")
+        if self.min_knn < 3:
+            raise ValueError(f"NormalStdConfig.min_knn must be >= 3 to fit a plane, got {self.min_knn}")
+        if not self.nms_radius >= 0:
+            raise ValueError(f"NormalStdConfig.nms_radius must be >= 0, got {self.nms_radius!r}")
+        if self.workspace is not None:
+            box = np.asarray(self.workspace, dtype=np.float64)
+            if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
+                raise ValueError(f"NormalStdConfig.workspace must be ((xmin, ymin, zmin), (xmax, ymax, zmax)) with "
+                                 f"min < max, got {self.workspace!r}")
+
+    @classmethod
+    def for_bin(cls, spec: "BinSpec", **kwargs: Any) -> "NormalStdConfig":
+        """A config whose workspace is the inside of ``spec``'s bin, up to its rim (for closed-loop runs)."""
+        half = np.asarray(spec.inner_size, dtype=np.float64) / 2
+        centre = np.asarray(spec.center_xy, dtype=np.float64)
+        lo = (*(centre - half), spec.floor_z - 0.01)  # 1 cm below the floor tolerates depth noise
+        hi = (*(centre + half), spec.floor_z + spec.wall_height)
+        return cls(workspace=(tuple(map(float, lo)), tuple(map(float, hi))), **kwargs)
+
+    def window(self, full_res: int) -> int:
+        """A full-resolution window scaled to the working resolution, kept odd so it is centred."""
+        return max(1, int(round(full_res / self.downsample))) | 1
+
+    @property
+    def effective_knn(self) -> int:
+        return max(self.min_knn, int(round(self.knn / self.downsample**2)))
+
+    @property
+    def effective_cell(self) -> int:
+        return max(1, int(round(self.cell / self.downsample)))
+
+
+@dataclass
+class FlatnessMap:
+    """Everything Normal-STD derives from one depth image, at the working resolution."""
+
+    heat: np.ndarray  # (h, w) smoothed flatness in [0, 1]; -inf where depth is missing
+    points: np.ndarray  # (h, w, 3) world frame; 0 where depth is missing
+    normals: np.ndarray  # (h, w, 3) unit, oriented towards the camera; 0 where depth is missing
+    valid: np.ndarray  # (h, w) bool
+
+
+def _depth_and_calibration(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if "depth" not in obs:
+        raise ValueError("Normal-STD needs obs['depth']")
+    depth = np.asarray(obs["depth"], dtype=np.float64)
+    if depth.ndim == 3 and depth.shape[-1] == 1:
+        depth = depth[..., 0]
+    if depth.ndim != 2 or min(depth.shape) < 2:
+        raise ValueError(f"obs['depth'] must be (H, W) or (H, W, 1), got {np.shape(obs['depth'])}")
+    if not np.all(np.isfinite(depth)):
+        raise ValueError("obs['depth'] contains NaN or inf; missing returns must be 0")
+    if np.any(depth < 0):
+        raise ValueError("obs['depth'] has negative values")
+    if not np.any(depth > 0):
+        raise ValueError("obs['depth'] is empty (no valid depth returns)")
+    if info is None or "intrinsics" not in info or "extrinsics" not in info:
+        raise ValueError("Normal-STD needs info['intrinsics'] (3x3) and info['extrinsics'] (4x4 cam->world)")
+    K = np.asarray(info["intrinsics"], dtype=np.float64)
+    T = np.asarray(info["extrinsics"], dtype=np.float64)
+    if K.shape != (3, 3) or T.shape != (4, 4) or not (np.all(np.isfinite(K)) and np.all(np.isfinite(T))):
+        raise ValueError(f"intrinsics must be finite 3x3 and extrinsics finite 4x4, got {K.shape} and {T.shape}")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("intrinsics focal lengths must be positive")
+    return depth, K, T
+
+
+def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray],
+               box: tuple[tuple[float, float, float], tuple[float, float, float]] | None) -> np.ndarray:
+    """Pixels inside ``box``, or else inside the bounding box of the observed cloud.
+
+    The depth image also sees the floor around the bin, the flattest surface in view; without this
+    mask every top candidate would land there. Without either, every valid pixel is eligible.
+    """
+    if box is not None:
+        lo, hi = np.asarray(box, dtype=np.float64)
+    else:
+        cloud = np.asarray(obs.get("points", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+        cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
+        if len(cloud) == 0:
+            return fmap.valid
+        lo, hi = cloud.min(axis=0), cloud.max(axis=0)
+    return fmap.valid & np.all((fmap.points >= lo) & (fmap.points <= hi), axis=-1)
+
+
+class NormalStdPolicy(Policy):
+    name = "normal_std"
+
+    def __init__(self, config: NormalStdConfig | None = None) -> None:
+        self.config = config or NormalStdConfig()
+
+    def flatness(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None) -> FlatnessMap:
+        """Heat map of surface flatness from the depth image (exposed for tests and visualisation)."""
+        cfg = self.config
+        depth, K, T = _depth_and_calibration(obs, info)
+        s = cfg.downsample
+        depth = depth[::s, ::s]
+        K = K.copy()
+        K[:2] /= s  # pixel u' = u / s for a strided subsample
+        valid = depth > 0
+        rows, cols = np.nonzero(valid)
+        points = np.zeros(depth.shape + (3,))
+        points[valid] = pixels_to_world(rows, cols, depth, K, T)
+
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[valid]))
+        if len(cloud.points) < cfg.min_knn:
+            raise ValueError(f"only {len(cloud.points)} valid depth pixels; Normal-STD needs at least {cfg.min_knn}")
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=cfg.effective_knn))
+        cloud.orient_normals_towards_camera_location(T[:3, 3])
+        normals = np.zeros_like(points)
+        normals[valid] = np.asarray(cloud.normals)
+
+        # Masked window statistics: holes in the depth image do not count as samples.
+        win = cfg.window(cfg.std_window)
+        weight = valid.astype(np.float64)
+        count = uniform_filter(weight, size=win, mode="nearest")
+        safe = np.maximum(count, 1e-12)[..., None]
+        mean = uniform_filter(normals, size=(win, win, 1), mode="nearest") / safe
+        mean_sq = uniform_filter(normals**2, size=(win, win, 1), mode="nearest") / safe
+        std = np.sqrt(np.clip(mean_sq - mean**2, 0.0, None)).mean(axis=-1)  # SuctionNet: mean of channel stds
+        std[~valid] = 0.0
+        heat = 1.0 - std / max(float(std.max()), _STD_FLOOR)
+        # A hole next to a pixel lowers its smoothed score (it counts as 0): the surface is unknown there.
+        heat = box_filter(heat, cfg.window(cfg.smooth_window), valid)
+        return FlatnessMap(heat=heat, points=points, normals=normals, valid=valid)
+
+    def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
+                top_k: int = 50) -> Candidates:
+        if top_k < 1:
+            raise ValueError(f"top_k must be >= 1, got {top_k}")
+        fmap = self.flatness(obs, info)
+        heat = np.where(_workspace(fmap, obs, self.config.workspace), fmap.heat, -np.inf)
+        rows, cols, scores = grid_topk(heat, self.config.effective_cell, self.config.max_candidates)
+        return select_candidates(fmap.points[rows, cols], fmap.normals[rows, cols], scores, top_k=top_k,
+                                 nms_radius=self.config.nms_radius)

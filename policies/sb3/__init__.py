@@ -1,0 +1,1 @@
+"""Stable-Baselines3 PPO on ParcelPick-v0's pixel action mode (a learning-from-reward baseline)."""

@@ -1,0 +1,324 @@
+"""Diffusion-Suction: scheduler math, neighbourhoods, model, training signal, checkpoints, policy, trainer CLI.
+
+Everything runs at 512 points with narrow layers and one torch thread (the CI box has 2 shared cores).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+from torch.utils.data import default_collate
+
+from policies.base import Candidates
+from policies.diffusion.checkpoint import load_checkpoint, load_model, save_checkpoint
+from policies.diffusion.config import DiffusionConfig
+from policies.diffusion.metrics import topk_precision
+from policies.diffusion.model import build_model
+from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods, grid_sample
+from policies.diffusion.pointnet2 import fold_batchnorm
+from policies.diffusion.policy import DiffusionSuctionPolicy
+from policies.diffusion.scheduler import DDIMScheduler, make_betas
+from policies.diffusion.synthetic import synthetic_scene
+from policies.postprocess import nms_indices, select_candidates
+
+N = 512
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One intra-op thread: OpenMP spin-waiting on an oversubscribed 2-core box is ~20x slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def cfg() -> DiffusionConfig:
+    return DiffusionConfig.tiny(inference_steps=5)
+
+
+def make_batch(cfg: DiffusionConfig, seeds=(3,)) -> dict[str, torch.Tensor]:
+    t = NeighbourhoodTransform(cfg)
+    return default_collate([t(synthetic_scene(np.random.default_rng(s), N)) for s in seeds])
+
+
+def obs_from(seed: int = 3, n: int = N) -> dict[str, np.ndarray]:
+    scene = synthetic_scene(np.random.default_rng(seed), n)
+    return {"points": scene["points"], "normals": scene["normals"]}
+
+
+# -- scheduler ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("schedule", ["linear", "cosine"])
+def test_alphas_cumprod_monotone_in_unit_interval(schedule):
+    abar = DDIMScheduler(1000, schedule).alphas_cumprod
+    assert abar.shape == (1000,)
+    assert torch.all(abar[1:] < abar[:-1])
+    assert 0.0 < float(abar[-1]) < 0.01 and 0.99 < float(abar[0]) < 1.0
+
+
+def test_linear_betas_and_timesteps_match_diffusers():
+    betas = make_betas(1000, "linear")
+    assert float(betas[0]) == pytest.approx(1e-4) and float(betas[-1]) == pytest.approx(0.02)
+    ts = DDIMScheduler(1000).timesteps(20)
+    assert ts.tolist() == list(range(950, -1, -50))
+    with pytest.raises(ValueError):
+        make_betas(10, "quadratic")
+    with pytest.raises(ValueError):
+        DDIMScheduler(100).timesteps(101)
+
+
+def test_add_noise_formula():
+    s = DDIMScheduler(1000)
+    x0, eps = torch.full((2, 4, 3), 0.5), torch.full((2, 4, 3), -1.0)
+    t = torch.tensor([0, 999])
+    xt = s.add_noise(x0, eps, t)
+    abar = s.alphas_cumprod[t].float()
+    expected = abar.sqrt().reshape(2, 1, 1) * 0.5 - (1 - abar).sqrt().reshape(2, 1, 1)
+    assert torch.allclose(xt, expected, atol=1e-6)
+    assert torch.allclose(xt[0], x0[0], atol=0.02)  # t = 0: almost clean
+    assert float(xt[1].mean()) < -0.9  # t = T-1: almost pure noise
+
+
+@pytest.mark.parametrize("prediction", ["eps", "x0"])
+@pytest.mark.parametrize("schedule", ["linear", "cosine"])
+def test_ddim_with_perfect_predictor_recovers_x0(prediction, schedule):
+    s = DDIMScheduler(1000, schedule)
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand((2, 4, 64), generator=g, dtype=torch.float64) - 0.5
+    x = torch.randn(x0.shape, generator=g, dtype=torch.float64)
+    ts = s.timesteps(10)
+    for t, prev in zip(ts.tolist(), s.prev_timesteps(ts).tolist()):
+        abar = s.alphas_cumprod[t]
+        out = (x - abar.sqrt() * x0) / (1 - abar).sqrt() if prediction == "eps" else x0
+        x, x0_pred = s.step(out, t, prev, x, prediction)
+        assert torch.allclose(x0_pred, x0, atol=1e-9)
+    assert torch.allclose(x, x0, atol=1e-9)
+
+
+# -- neighbourhoods -----------------------------------------------------------------------------------------------
+def test_neighbourhoods_are_valid_indices_inside_their_balls(cfg):
+    pts = synthetic_scene(np.random.default_rng(0), N)["points"].astype(np.float64)
+    nb = compute_neighbourhoods(pts, cfg)
+    level = pts
+    for l, radii in enumerate(cfg.sa_radii, start=1):
+        c, g = nb[f"sa{l}_centres"], nb[f"sa{l}_groups"]
+        assert c.shape == (cfg.sa_npoints[l - 1],) and len(np.unique(c)) == len(c)
+        assert g.shape == (len(c), len(radii), cfg.nsample) and g.min() >= 0 and g.max() < len(level)
+        centres = level[c]
+        for s, r in enumerate(radii):
+            d = np.linalg.norm(level[g[:, s]] - centres[:, None], axis=-1)
+            assert np.all(d <= r + 1e-9)
+            assert np.all(g[:, s, 0] == c)  # nearest neighbour of a centre is itself (the padding value)
+        w = nb[f"fp{l}_weight"]
+        assert w.shape == (len(level), 3) and np.allclose(w.sum(1), 1, atol=1e-5) and nb[f"fp{l}_index"].max() < len(c)
+        level = centres
+
+
+def test_grid_sample_is_uniform_and_deterministic():
+    rng = np.random.default_rng(0)
+    dense = np.c_[rng.uniform(0, 0.1, 900), rng.uniform(0, 0.1, 900), np.zeros(900)]  # dense corner
+    sparse = np.c_[rng.uniform(0.1, 1, 100), rng.uniform(0.1, 1, 100), np.zeros(100)]
+    pts = np.concatenate([dense, sparse])
+    idx = grid_sample(pts, 100)
+    assert len(idx) == 100 and len(np.unique(idx)) == 100
+    assert np.array_equal(idx, grid_sample(pts, 100))
+    assert (idx >= 900).sum() > 40  # a random sample would take ~10 of the sparse points
+    assert np.array_equal(grid_sample(pts, 5000), np.arange(1000))
+
+
+# -- model --------------------------------------------------------------------------------------------------------
+def test_model_shapes_ranges_and_trajectory(cfg):
+    batch = make_batch(cfg, seeds=(1, 2))
+    model = build_model(cfg).eval()
+    with torch.inference_mode():
+        feats = model.encode(batch)
+        scores, traj = model.sample(feats, generator=torch.Generator().manual_seed(0), return_trajectory=True)
+        sub = model.sample(feats, steps=2, point_index=torch.arange(100).repeat(2, 1))
+    assert feats.shape == (2, N, cfg.feature_dim)
+    assert scores.shape == (2, N, 4) and traj.shape == (cfg.inference_steps + 1, 2, N, 4)
+    assert float(scores.min()) >= 0 and float(scores.max()) <= 1
+    assert torch.equal(traj[-1], scores)
+    assert sub.shape == (2, 100, 4)
+    losses = build_model(cfg).forward_train(batch, torch.Generator().manual_seed(0))
+    assert set(losses) == {"denoise", "map", "loss"} and torch.isfinite(losses["loss"])
+
+
+def test_folded_batchnorm_encoder_matches(cfg):
+    batch = make_batch(cfg, seeds=(1, 2))
+    model = build_model(cfg)
+    model.train()
+    model.forward_train(batch)  # move the running statistics off their initial values
+    model.eval()
+    with torch.inference_mode():
+        ref = model.encode(batch)
+        folded = fold_batchnorm(model.encoder)(batch)
+    assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in fold_batchnorm(model.encoder).modules())
+    assert torch.allclose(ref, folded, atol=1e-4), float((ref - folded).abs().max())
+
+
+def test_ablation_configs_build_and_run():
+    for cfg in (DiffusionConfig.tiny(inference_steps=2, use_visibility=False),
+                DiffusionConfig.tiny(inference_steps=2, use_normals=False, schedule="cosine", prediction="x0"),
+                DiffusionConfig.tiny(inference_steps=2, encoder="pointnet", map_loss_weight=0.0)):
+        batch = make_batch(cfg)
+        model = build_model(cfg)
+        assert torch.isfinite(model.forward_train(batch)["loss"])
+        with torch.inference_mode():
+            assert model.eval().sample(model.encode(batch)).shape == (1, N, cfg.num_channels)
+
+
+def test_config_validation():
+    for bad in ({"num_points": 0}, {"encoder": "dgcnn"}, {"schedule": "sqrt"}, {"scale": -1},
+                {"inference_steps": 2000}, {"sa_npoints": (600, 32, 16, 8)}, {"sa_radii": ((-0.01, 0.02, 0.03),) * 4}):
+        with pytest.raises(ValueError):
+            DiffusionConfig.tiny(**bad)
+    c = DiffusionConfig.tiny()
+    assert DiffusionConfig.from_dict(c.to_dict()) == c
+    with pytest.raises(ValueError, match="unknown"):
+        DiffusionConfig.from_dict({**c.to_dict(), "bogus": 1})
+
+
+def test_same_seed_same_prediction(cfg):
+    batch = make_batch(cfg)
+    a, b = build_model(cfg, seed=5).eval(), build_model(cfg, seed=5).eval()
+    with torch.inference_mode():
+        sa = a.sample(a.encode(batch), generator=torch.Generator().manual_seed(1))
+        sb = b.sample(b.encode(batch), generator=torch.Generator().manual_seed(1))
+        sc = b.sample(b.encode(batch), generator=torch.Generator().manual_seed(2))
+    assert torch.equal(sa, sb)
+    assert not torch.equal(sa, sc)
+
+
+def test_training_learns_to_rank_good_suction_points(cfg):
+    """Overfit one synthetic scene: the top-k precision of the sampled map must clearly beat the untrained model."""
+    batch = make_batch(cfg)
+    quality = batch["labels"].prod(-1)
+    model = build_model(cfg, seed=0)
+
+    def ap() -> float:
+        model.eval()
+        with torch.inference_mode():
+            s = model.sample(model.encode(batch), generator=torch.Generator().manual_seed(1))
+        model.train()
+        return topk_precision(s.prod(-1), quality, k=20)
+
+    before = ap()
+    opt = torch.optim.Adam(model.parameters(), lr=2e-3)
+    for i in range(60):
+        loss = model.forward_train(batch, torch.Generator().manual_seed(i))["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after = ap()
+    assert before < 0.3
+    assert after > max(0.45, before + 0.25), (before, after)
+
+
+def test_topk_precision_known_values():
+    labels = torch.tensor([[1.0, 0.5, 0.0, 0.9]])
+    perfect = topk_precision(labels.clone(), labels, k=2, thresholds=(0.4,))
+    worst = topk_precision(-labels, labels, k=1, thresholds=(0.4,))
+    assert perfect == 1.0 and worst == 0.0
+
+
+# -- checkpoints --------------------------------------------------------------------------------------------------
+def test_checkpoint_roundtrip_and_errors(cfg, tmp_path):
+    model = build_model(cfg, seed=3)
+    path = save_checkpoint(tmp_path / "m.pt", model, step=7)
+    loaded, payload = load_model(path)
+    assert payload["step"] == 7 and payload["config"] == cfg
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, loaded.state_dict()[k])
+    with pytest.raises(FileNotFoundError, match="nope.pt"):
+        load_checkpoint(tmp_path / "nope.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="junk.pt"):
+        load_checkpoint(tmp_path / "junk.pt")
+    with pytest.raises(ValueError, match="config mismatch"):
+        load_model(path, expected=DiffusionConfig.tiny(inference_steps=7))
+    bad = torch.load(path, weights_only=True)
+    bad["config"]["decoder_dim"] = 64  # weights no longer fit the config
+    torch.save(bad, tmp_path / "mismatch.pt")
+    with pytest.raises(ValueError, match="mismatch.pt.*do not match"):
+        load_model(tmp_path / "mismatch.pt")
+    bad["version"] = 99
+    torch.save(bad, tmp_path / "future.pt")
+    with pytest.raises(ValueError, match="version"):
+        load_checkpoint(tmp_path / "future.pt")
+
+
+# -- policy -------------------------------------------------------------------------------------------------------
+def test_policy_predicts_sorted_nms_candidates(cfg, tmp_path):
+    path = save_checkpoint(tmp_path / "m.pt", build_model(cfg))
+    policy = DiffusionSuctionPolicy(checkpoint=path, seed=0)
+    obs = obs_from(3, 2 * N)  # more points than num_points: subsampled
+    obs["points"][:5] = np.nan  # dropouts are skipped
+    cands = policy.predict(obs, top_k=10)
+    assert isinstance(cands, Candidates) and 0 < len(cands) <= 10
+    assert np.all(np.diff(cands.scores) <= 0) and cands.scores.min() >= 0 and cands.scores.max() <= 1
+    assert np.allclose(np.linalg.norm(cands.normals, axis=1), 1, atol=1e-5)
+    d = np.linalg.norm(cands.points[:, None] - cands.points[None], axis=-1) + np.eye(len(cands))
+    assert d.min() > 0.02 - 1e-6
+    traj = policy.last_trajectory
+    assert traj is not None and traj.maps.shape == (cfg.inference_steps + 1, N, 4) and len(traj.points) == N
+    assert policy.act(obs).shape == (6,)
+    again = DiffusionSuctionPolicy(checkpoint=path, seed=0).predict(obs, top_k=10)
+    assert np.array_equal(again.points, cands.points) and np.array_equal(again.scores, cands.scores)
+
+
+def test_policy_decode_subset_and_bad_inputs(cfg, tmp_path):
+    policy = DiffusionSuctionPolicy(model=build_model(cfg), decode_points=128)
+    obs = obs_from(4)
+    assert len(policy.predict(obs, top_k=5)) <= 5
+    assert policy.last_trajectory.maps.shape[1] == 128
+    empty = policy.predict({"points": np.zeros((0, 3)), "normals": np.zeros((0, 3))})
+    assert len(empty) == 0 and policy.last_trajectory is None
+    assert len(policy.predict({k: v[:3] for k, v in obs.items()})) == 0
+    assert 0 < len(policy.predict({k: v[:20] for k, v in obs.items()}, top_k=4)) <= 4  # tiny but usable
+    with pytest.raises(ValueError, match="no candidates"):
+        policy.act({"points": np.zeros((0, 3)), "normals": np.zeros((0, 3))})
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        policy.predict({"points": np.zeros((10, 2)), "normals": np.zeros((10, 2))})
+    with pytest.raises(ValueError, match="normals"):
+        policy.predict({"points": np.zeros((10, 3))})
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        DiffusionSuctionPolicy(checkpoint=tmp_path / "missing.pt")
+
+
+# -- post-processing ----------------------------------------------------------------------------------------------
+def test_nms_matches_brute_force_greedy():
+    rng = np.random.default_rng(0)
+    pts, scores = rng.uniform(0, 0.2, (400, 3)), rng.random(400)
+    keep = nms_indices(pts, scores, 0.02)
+    ref, alive = [], np.ones(400, bool)
+    for i in np.argsort(-scores):
+        if alive[i]:
+            ref.append(i)
+            alive &= np.linalg.norm(pts - pts[i], axis=1) > 0.02
+    assert keep.tolist() == ref
+    assert nms_indices(pts, scores, 0.02, max_keep=5).tolist() == ref[:5]
+    assert len(cKDTree(pts[keep]).query_pairs(0.02 - 1e-9)) == 0
+    c = select_candidates(pts, np.tile([0, 0, 2.0], (400, 1)), scores, top_k=3)
+    assert len(c) == 3 and np.allclose(c.normals, [0, 0, 1])
+    with pytest.raises(ValueError):
+        nms_indices(pts, scores[:10])
+
+
+# -- trainer CLI --------------------------------------------------------------------------------------------------
+def test_train_cli_runs_and_resumes_deterministically(tmp_path):
+    from policies.diffusion.train import main
+
+    common = ["--synthetic", "4", "--preset", "tiny", "--num-points", "256", "--inference-steps", "3",
+              "--batch-size", "2", "--val-every", "2", "--val-scenes", "1", "--threads", "1", "--no-progress"]
+    main(common + ["--out", str(tmp_path / "a"), "--steps", "4"])
+    main(common + ["--out", str(tmp_path / "b"), "--steps", "2"])
+    main(common + ["--out", str(tmp_path / "b"), "--steps", "4", "--resume"])
+    a, b = load_checkpoint(tmp_path / "a" / "last.pt"), load_checkpoint(tmp_path / "b" / "last.pt")
+    assert a["step"] == b["step"] == 4 and (tmp_path / "a" / "best.pt").is_file()
+    for k, v in a["model"].items():
+        assert torch.equal(v, b["model"][k]), k
+    policy = DiffusionSuctionPolicy(checkpoint=tmp_path / "a" / "best.pt")
+    assert len(policy.predict(obs_from(5, 256), top_k=3)) > 0

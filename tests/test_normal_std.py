@@ -1,0 +1,149 @@
+"""Normal-STD and random baselines on an analytically ray-cast box-on-a-floor depth image."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from parcelpick_env.scene.scene import BinSpec
+from policies.normal_std import NormalStdConfig, NormalStdPolicy
+from policies.random_policy import RandomPolicy
+
+BOX_MIN = np.array([-0.05, -0.05, 0.0])
+BOX_MAX = np.array([0.25, 0.15, 0.10])  # a 30 x 20 x 10 cm box on the floor z = 0
+
+
+def _render_box_scene(width: int = 320, height: int = 240, focal: float = 280.0):
+    """Depth image of the box and floor from a camera 1 m up, off to the side so two box sides show."""
+    floor = o3d.geometry.TriangleMesh.create_box(2.0, 2.0, 0.01).translate((-1.0, -1.0, -0.01))
+    box = o3d.geometry.TriangleMesh.create_box(*(BOX_MAX - BOX_MIN)).translate(BOX_MIN)
+    scene = o3d.t.geometry.RaycastingScene()
+    for mesh in (floor, box):
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    K = np.array([[focal, 0, width / 2 - 0.5], [0, focal, height / 2 - 0.5], [0, 0, 1.0]])
+    cam_to_world = np.eye(4)
+    cam_to_world[:3, :3] = np.diag([1.0, -1.0, -1.0])  # OpenCV camera looking straight down
+    cam_to_world[:3, 3] = (-0.3, -0.2, 1.0)
+    rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
+        o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(cam_to_world)), width, height)
+    t_hit = scene.cast_rays(rays)["t_hit"].numpy()
+    z_along_ray = (rays.numpy()[..., 3:] @ cam_to_world[:3, :3])[..., 2]
+    depth = np.where(np.isfinite(t_hit), t_hit * z_along_ray, 0.0).astype(np.float32)
+    # The cloud the env would observe: every valid pixel, normals pointing up (enough for the random policy).
+    u, v = np.meshgrid(np.arange(width), np.arange(height))
+    cam = np.stack([(u - K[0, 2]) * depth / focal, (v - K[1, 2]) * depth / focal, depth], -1)[depth > 0]
+    points = (cam @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]).astype(np.float32)
+    normals = np.tile(np.float32([0, 0, 1]), (len(points), 1))
+    obs = {"depth": depth[..., None], "points": points, "normals": normals,
+           "rgb": np.zeros((height, width, 3), np.uint8)}
+    return obs, {"intrinsics": K, "extrinsics": cam_to_world}
+
+
+@pytest.fixture(scope="module")
+def box_scene():
+    return _render_box_scene()
+
+
+def _heat_near(fmap, xyz):
+    dist = np.linalg.norm(fmap.points - np.asarray(xyz), axis=-1)
+    dist[~fmap.valid] = np.inf
+    pixel = np.unravel_index(np.argmin(dist), dist.shape)
+    assert dist[pixel] < 0.01, "test point not observed"
+    return fmap.heat[pixel]
+
+
+def test_flat_box_centre_beats_box_edge(box_scene):
+    obs, info = box_scene
+    fmap = NormalStdPolicy().flatness(obs, info)
+    centre = _heat_near(fmap, [0.10, 0.05, 0.10])
+    # Edges next to the two sides the camera sees (x = -0.05 and y = -0.05).
+    edges = [_heat_near(fmap, [-0.045, 0.05, 0.10]), _heat_near(fmap, [0.10, -0.045, 0.10])]
+    assert centre > 0.95
+    assert max(edges) < 0.5 * centre
+
+
+def _assert_valid_candidates(cands, obs, top_k):
+    assert 0 < len(cands) <= top_k
+    assert cands.points.shape == (len(cands), 3) and cands.normals.shape == (len(cands), 3)
+    assert np.all(np.diff(cands.scores) <= 0)
+    np.testing.assert_allclose(np.linalg.norm(cands.normals, axis=1), 1.0, atol=1e-5)
+    lo, hi = obs["points"].min(0) - 1e-4, obs["points"].max(0) + 1e-4
+    assert np.all((cands.points >= lo) & (cands.points <= hi))
+    action = cands.best_action()
+    assert action.shape == (6,) and action.dtype == np.float32 and np.all(np.isfinite(action))
+
+
+def test_normal_std_candidates_are_valid_and_avoid_visible_edges(box_scene):
+    obs, info = box_scene
+    policy = NormalStdPolicy()
+    cands = policy.predict(obs, info, top_k=30)
+    _assert_valid_candidates(cands, obs, 30)
+    assert np.all(cands.normals[:, 2] > 0.9)  # every flat region here faces up
+    # No top candidate sits within 1 cm of the two box edges that have a visible side below them.
+    on_top = cands.points[:, 2] > 0.09
+    near_edge = on_top & ((cands.points[:, 0] < BOX_MIN[0] + 0.01) | (cands.points[:, 1] < BOX_MIN[1] + 0.01))
+    assert not near_edge.any()
+    # Candidates survive NMS at 2 cm.
+    d = np.linalg.norm(cands.points[:, None] - cands.points[None], axis=-1) + np.eye(len(cands))
+    assert d.min() >= 0.02 - 1e-6
+    assert policy.act(obs, info).shape == (6,)
+
+
+def test_random_policy_valid_and_seeded(box_scene):
+    obs, info = box_scene
+    policy = RandomPolicy(seed=3)
+    first = policy.predict(obs, info, top_k=40)
+    _assert_valid_candidates(first, obs, 40)
+    policy.reset(seed=3)
+    again = policy.predict(obs, info, top_k=40)
+    np.testing.assert_array_equal(first.points, again.points)
+    other = RandomPolicy(seed=4).predict(obs, info, top_k=40)
+    assert not np.array_equal(first.points, other.points)
+    assert len(RandomPolicy().predict({"points": obs["points"][:5], "normals": obs["normals"][:5]}, top_k=50)) == 5
+
+
+@pytest.mark.parametrize("breakage", ["nan_depth", "empty_depth", "no_info", "bad_shape"])
+def test_normal_std_rejects_bad_observations(box_scene, breakage):
+    obs, info = dict(box_scene[0]), box_scene[1]
+    if breakage == "nan_depth":
+        obs["depth"] = obs["depth"].copy()
+        obs["depth"][5, 5] = np.nan
+    elif breakage == "empty_depth":
+        obs["depth"] = np.zeros_like(obs["depth"])
+    elif breakage == "no_info":
+        info = None
+    else:
+        obs["depth"] = obs["depth"][..., 0][None]
+    with pytest.raises(ValueError):
+        NormalStdPolicy().predict(obs, info)
+
+
+def test_random_policy_rejects_bad_observations():
+    with pytest.raises(ValueError):
+        RandomPolicy().predict({"points": np.full((4, 3), np.nan), "normals": np.ones((4, 3))})
+    with pytest.raises(ValueError):
+        RandomPolicy().predict({"points": np.zeros((4, 2)), "normals": np.ones((4, 2))})
+
+
+def test_config_validation():
+    with pytest.raises(ValueError):
+        NormalStdConfig(cell=0)
+    with pytest.raises(ValueError):
+        NormalStdConfig(nms_radius=-1.0)
+    with pytest.raises(ValueError):
+        NormalStdConfig(workspace=((0, 0, 0), (1, -1, 1)))
+    assert NormalStdConfig(downsample=2).effective_knn == 56  # KNN 224 over the same surface patch
+    np.testing.assert_allclose(NormalStdConfig.for_bin(BinSpec()).workspace, ((-0.35, -0.25, -0.01), (0.35, 0.25, 0.25)))
+
+
+def test_normal_std_stays_inside_the_observed_workspace(box_scene):
+    """The env crops the cloud to the bin; the flat floor outside it must not attract candidates."""
+    obs, info = box_scene
+    cropped = dict(obs)
+    inside = np.all(np.abs(obs["points"][:, :2] - [0.1, 0.05]) < [0.25, 0.2], axis=1)
+    cropped["points"], cropped["normals"] = obs["points"][inside], obs["normals"][inside]
+    cands = NormalStdPolicy().predict(cropped, info, top_k=50)
+    lo, hi = cropped["points"].min(0) - 1e-6, cropped["points"].max(0) + 1e-6
+    assert len(cands) > 5 and np.all((cands.points >= lo) & (cands.points <= hi))
+    box = ((-0.1, -0.1, 0.05), (0.3, 0.2, 0.2))  # the upper half of the box: its top and two visible sides
+    on_box = NormalStdPolicy(NormalStdConfig(workspace=box)).predict(obs, info, top_k=50)
+    assert len(on_box) > 3 and np.all((on_box.points >= np.array(box[0])) & (on_box.points <= np.array(box[1])))

@@ -1,0 +1,153 @@
+"""Simulator and pile building: mesh-frame poses, determinism, split hygiene, validation, rest, layouts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pybullet as pb
+import pytest
+import shapely
+from scipy.spatial.transform import Rotation
+
+from parcelpick_env.scene.config import PileConfig
+from parcelpick_env.scene.pile import build_pile, refresh_scene_poses
+from parcelpick_env.scene.scene import BinSpec
+from parcelpick_env.sim.config import SimConfig
+from parcelpick_env.sim.simulator import Simulator
+
+TINY = dict(num_parcels=4, object_set="mixed")
+
+
+@pytest.fixture(scope="module")
+def sim():
+    with Simulator() as s:
+        yield s
+
+
+def _poses(scene):
+    return (np.array([p.position for p in scene.parcels]), np.array([p.orientation for p in scene.parcels]))
+
+
+def test_body_pose_is_the_mesh_frame_not_the_com_frame(sim, library):
+    sim.reset()
+    asset = max(library.train, key=lambda a: np.linalg.norm(a.com))  # the most off-centre COM
+    assert np.linalg.norm(asset.com) > 1e-3
+    q = Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_quat()
+    body = sim.add_parcel(asset, [0.1, -0.05, 0.5], q, friction=0.5)
+    pos, orn = sim.body_pose(body)
+    np.testing.assert_allclose(pos, [0.1, -0.05, 0.5], atol=1e-9)
+    np.testing.assert_allclose(np.abs(orn @ q), 1.0, atol=1e-9)
+    com_pos, _ = pb.getBasePositionAndOrientation(body, physicsClientId=sim.client)
+    np.testing.assert_allclose(com_pos, Rotation.from_quat(q).apply(asset.com) + [0.1, -0.05, 0.5], atol=1e-9)
+    sim.set_body_pose(body, [0.0, 0.0, 1.0], [0, 0, 0, 1])
+    np.testing.assert_allclose(sim.body_pose(body)[0], [0.0, 0.0, 1.0], atol=1e-9)
+    mass = pb.getDynamicsInfo(body, -1, physicsClientId=sim.client)[0]
+    assert mass == pytest.approx(asset.mass)
+
+
+def test_settle_stops_when_motion_stops(sim, library):
+    sim.reset()
+    sim.add_bin(BinSpec())
+    asset = library.assets("train", "rectangular")[0]
+    body = sim.add_parcel(asset, [0, 0, asset.extents[2] / 2 + 0.05], [0, 0, 0, 1], friction=0.6)
+    steps = sim.settle([body])
+    assert steps < sim.config.max_settle_steps and sim.is_at_rest([body])
+    lowest = (Rotation.from_quat(sim.body_pose(body)[1]).apply(asset.mesh.vertices) + sim.body_pose(body)[0])[:, 2].min()
+    assert abs(lowest) < 0.004  # resting on the floor (z = 0) with its true mesh, within the collision margin
+
+
+def test_simulator_rejects_bad_input_and_cleans_up(library):
+    with pytest.raises(ValueError):
+        SimConfig(timestep=0)
+    with pytest.raises(ValueError):
+        SimConfig(max_settle_steps=0)
+    s = Simulator(SimConfig(egl_rendering=False))
+    tmpdir = s._tmpdir
+    with pytest.raises(ValueError):
+        s.add_parcel(library.train[0], [0, 0, np.nan], [0, 0, 0, 1], 0.5)
+    with pytest.raises(ValueError):
+        s.add_parcel(library.train[0], [0, 0, 0], [0, 0, 0, 0], 0.5)
+    with pytest.raises(ValueError):
+        s.add_parcel(library.train[0], [0, 0, 0], [0, 0, 0, 1], -1.0)
+    body = s.add_parcel(library.train[0], [0, 0, 1], [0, 0, 0, 1], 0.5)
+    s.remove(body)
+    assert not s.has_body(body)
+    s.close()
+    assert not tmpdir.exists()
+    with pytest.raises(RuntimeError):
+        s.step()
+
+
+@pytest.mark.parametrize("kwargs", [
+    dict(num_parcels=0), dict(num_parcels=51), dict(object_set="spheres"), dict(layout="heap"),
+    dict(split="validation"), dict(friction_range=(0.8, 0.2)), dict(friction_range=(-0.1, 0.5)),
+    dict(drop_height=-1.0),
+])
+def test_pile_config_validation(kwargs):
+    with pytest.raises(ValueError):
+        PileConfig(**kwargs)
+
+
+def test_negative_bin_size_is_rejected():
+    with pytest.raises(ValueError):
+        PileConfig(bin=BinSpec(inner_size=(-0.5, 0.5)))
+
+
+def test_same_seed_gives_identical_poses(sim, library):
+    config = PileConfig(**TINY)
+    a = build_pile(sim, config, seed=3, library=library)
+    b = build_pile(sim, config, seed=3, library=library)
+    with Simulator(SimConfig(egl_rendering=False)) as fresh:
+        c = build_pile(fresh, config, seed=3, library=library)
+    for other in (b, c):
+        assert [p.asset.asset_id for p in a.parcels] == [p.asset.asset_id for p in other.parcels]
+        for x, y in zip(_poses(a), _poses(other)):
+            assert np.array_equal(x, y)
+    d = build_pile(sim, config, seed=4, library=library)
+    assert not np.array_equal(_poses(a)[0][:1], _poses(d)[0][:1])
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_split_scenes_use_only_their_split(sim, library, split):
+    allowed = {a.asset_id for a in library.assets(split, "mixed")}
+    for seed in range(2):
+        scene = build_pile(sim, PileConfig(num_parcels=5, split=split), seed=seed, library=library)
+        assert scene.parcels and scene.split == split
+        assert all(p.asset.split == split and p.asset.asset_id in allowed for p in scene.parcels)
+
+
+def test_stacked_pile_is_inside_the_bin_and_at_rest(sim, library):
+    config = PileConfig(**TINY)
+    scene = build_pile(sim, config, seed=1, library=library)
+    assert scene.meta["at_rest"] and sim.is_at_rest([p.body_id for p in scene.parcels])
+    assert [p.object_id for p in scene.parcels] == list(range(len(scene.parcels)))
+    assert len(scene.parcels) + len(scene.meta["removed_outside"]) == config.num_parcels
+    half = np.asarray(config.bin.inner_size) / 2
+    coms = scene.world_coms()
+    assert np.all(np.abs(coms[:, :2]) < half + 0.005) and np.all(coms[:, 2] > 0)
+    for p in scene.parcels:  # scene poses are the simulator's mesh-frame poses
+        pos, orn = sim.body_pose(p.body_id)
+        assert np.array_equal(pos, p.position) and np.array_equal(orn, p.orientation)
+        assert config.friction_range[0] <= p.friction <= config.friction_range[1]
+
+
+def test_scattered_footprints_do_not_overlap(sim, library):
+    scene = build_pile(sim, PileConfig(num_parcels=4, layout="scattered", object_set="rectangular"), 0, library)
+    assert len(scene.parcels) >= 2
+    footprints = [shapely.convex_hull(shapely.multipoints(m.vertices[:, :2])) for m in scene.world_meshes()]
+    for i in range(len(footprints)):
+        for j in range(i + 1, len(footprints)):
+            inter = footprints[i].intersection(footprints[j]).area
+            assert inter < 0.02 * min(footprints[i].area, footprints[j].area)
+    heights = np.array([m.bounds[0, 2] for m in scene.world_meshes()])
+    assert np.all(np.abs(heights) < 0.01)  # every scattered parcel rests on the floor, none on another
+
+
+def test_refresh_scene_poses_follows_the_simulator(sim, library):
+    scene = build_pile(sim, PileConfig(num_parcels=2), seed=0, library=library)
+    parcel = scene.parcels[0]
+    sim.set_body_pose(parcel.body_id, [0.05, 0.02, 0.6], [0, 0, 0, 1])
+    refresh_scene_poses(sim, scene)
+    np.testing.assert_allclose(parcel.position, [0.05, 0.02, 0.6], atol=1e-9)
+    sim.remove(parcel.body_id)
+    with pytest.raises(ValueError):
+        refresh_scene_poses(sim, scene)
