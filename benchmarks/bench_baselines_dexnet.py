@@ -97,7 +97,7 @@ def main() -> None:
         from policies.dexnet.crops import DepthMosaic
 
         seeds = np.arange(min(cfg.num_seeds, len(cand)))
-        score = time_calls(lambda: policy._quality(DepthMosaic(depth), cand, seeds, K), args.runs)
+        score = time_calls(lambda: policy.score(DepthMosaic(depth), cand, seeds, K), args.runs)
         policy.reset(0)
         scored = len(policy.search(depth, cand, K)[0])
         full = time_calls(lambda: policy.predict(obs, info, top_k=50), args.runs)

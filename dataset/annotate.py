@@ -81,13 +81,6 @@ def farthest_point_indices(points: np.ndarray, k: int, rng: np.random.Generator,
     return candidates[np.asarray(sampled.colors)[:, 0].astype(np.int64)]
 
 
-def _in_bin(points: np.ndarray, bin_spec: Any) -> np.ndarray:
-    """Points over the bin (walls included): the camera also sees the floor around it."""
-    half = np.asarray(bin_spec.inner_size) / 2 + bin_spec.wall_thickness
-    offset = np.abs(points[:, :2] - np.asarray(bin_spec.center_xy))
-    return np.all(offset <= half, axis=1) & (points[:, 2] >= bin_spec.floor_z - bin_spec.wall_thickness)
-
-
 def _bounding_boxes(scene: Any) -> dict[str, np.ndarray]:
     """Oriented 3-D boxes: each parcel's body-frame mesh bounds carried by its pose."""
     m = len(scene.parcels)
@@ -131,7 +124,8 @@ def annotate_scene_timed(scene_seed: int, config: GenerationConfig) -> tuple[Rec
     noise = np.random.default_rng(noise_ss).normal(0.0, rgb_noise_std, size=frame.rgb.shape)
     rgb = np.clip(np.rint(frame.rgb.astype(np.float64) + noise), 0, 255).astype(np.uint8)
     t2, c2 = time.perf_counter(), time.process_time()
-    over_bin = _in_bin(frame.points, scene.bin) if config.crop_to_bin else np.ones(len(frame.points), bool)
+    over_bin = (scene.bin.contains(frame.points, margin=scene.bin.wall_thickness, floor_tolerance=scene.bin.wall_thickness)
+                if config.crop_to_bin else np.ones(len(frame.points), bool))  # wall tops kept: labelled negatives
     candidates = np.flatnonzero(over_bin)
     if len(candidates) == 0:
         raise RuntimeError(f"scene seed {scene_seed}: the camera saw no points over the bin")

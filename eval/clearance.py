@@ -24,12 +24,13 @@ import numpy as np
 if __package__ in (None, ""):  # allow `python eval/clearance.py` as well as `python -m eval.clearance`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from parcelpick_env.envs.grasp import OUTCOMES  # noqa: E402  (one list of pick outcomes, the env's)
 from parcelpick_env.parallel import BACKENDS, parallel_map  # noqa: E402
 
 OBJECT_SETS: tuple[str, ...] = ("rectangular", "planar", "cylindrical", "mixed")
-LAYOUTS: tuple[str, ...] = ("scattered", "stacked")
-OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", "dropped", "collision",
-                             "invalid_action")
+LAYOUTS: tuple[str, ...] = ("scattered", "stacked")  # the paper's Table V column order
+# Set per episode from the grid; passing them in env_kwargs as well would be silently overridden.
+RESERVED_ENV_KWARGS: tuple[str, ...] = ("object_set", "layout", "num_parcels", "max_attempts", "record_dir")
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,13 @@ class ClearanceConfig:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.max_attempts is not None and self.max_attempts < 1:
+            raise ValueError(f"max_attempts must be >= 1 or None, got {self.max_attempts}")
+        clash = sorted(set(self.env_kwargs) & set(RESERVED_ENV_KWARGS))
+        if clash:
+            raise ValueError(f"env_kwargs may not set {clash}: use the ClearanceConfig fields instead")
 
 
 @dataclass(frozen=True)
@@ -124,7 +132,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         policy.reset(task.seed)
         outcomes: Counter[str] = Counter()
         first = True
-        while True:
+        while info.get("reason") != "cleared":  # an empty pile needs no attempt
             action = _choose_action(policy, obs, info, env.unwrapped.action_space.shape)
             if first:
                 _log_policy_extras(env.unwrapped, policy)

@@ -100,8 +100,9 @@ def _summarise(curves: np.ndarray, thresholds: tuple[float, ...]) -> dict[str, f
 def aggregate_ap(per_scene: Sequence[SceneAP]) -> dict:
     """AP over scenes: AP (mean over scenes, k and θ), AP<θ> per threshold, and the same at k = 1 (Top-1).
 
-    Keys: ``AP``, ``AP0.2``, ``AP0.4``, ... , ``top1_AP``, ``top1_AP0.4``, ..., ``num_scenes``, and
-    ``per_category`` mapping each category to the same keys, averaged over the scenes containing it.
+    Keys: ``AP``, ``AP0.2``, ``AP0.4``, ... , ``top1_AP``, ``top1_AP0.4``, ..., ``num_scenes``,
+    ``precision_at_k`` (the mean curve over scenes, ``[k-1][t]`` in percent), and ``per_category``
+    mapping each category to the scalar keys, averaged over the scenes containing it.
     """
     if len(per_scene) == 0:
         raise ValueError("aggregate_ap needs at least one scene")
@@ -110,7 +111,9 @@ def aggregate_ap(per_scene: Sequence[SceneAP]) -> dict:
     for sc in per_scene:
         if sc.thresholds != thresholds or sc.precision.shape != shape:
             raise ValueError("all scenes must share thresholds and max_k")
-    result = _summarise(np.stack([sc.precision for sc in per_scene]), thresholds)
+    stack = np.stack([sc.precision for sc in per_scene])
+    result = _summarise(stack, thresholds)
+    result["precision_at_k"] = (100.0 * stack.mean(axis=0)).tolist()  # (max_k, T) mean P@k curves, for plots
     result["thresholds"] = list(thresholds)
     result["max_k"] = int(shape[0])
     by_cat: dict[str, list[np.ndarray]] = {}

@@ -30,6 +30,7 @@ from scipy.ndimage import uniform_filter
 
 from policies.base import Candidates, Policy
 from policies.heatmap import box_filter, grid_topk, pixels_to_world
+from policies.observation import camera, depth_image
 from policies.postprocess import select_candidates
 
 if TYPE_CHECKING:
@@ -52,8 +53,12 @@ class NormalStdConfig:
     cell: int = 10
     max_candidates: int = 1024
     nms_radius: float = 0.02
-    # World-frame box (min xyz, max xyz) candidates must lie in; None: the observed cloud's bounding box.
+    # World-frame box (min xyz, max xyz) candidates must lie in; None: ``info['workspace']`` (the env's
+    # bin) when given, else the observed cloud's bounding box.
     workspace: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    # Empty-bin background removal: pixels this close above the workspace floor are not candidates
+    # (the flat bin floor is otherwise the best-scoring surface in view).
+    floor_clearance: float = 0.004
 
     def __post_init__(self) -> None:
         for name in ("downsample", "knn", "min_knn", "std_window", "smooth_window", "cell", "max_candidates"):
@@ -62,6 +67,8 @@ class NormalStdConfig:
                 raise ValueError(f"NormalStdConfig.{name} must be a positive integer, got {value!r}")
         if self.min_knn < 3:
             raise ValueError(f"NormalStdConfig.min_knn must be >= 3 to fit a plane, got {self.min_knn}")
+        if not self.floor_clearance >= 0:
+            raise ValueError(f"NormalStdConfig.floor_clearance must be >= 0, got {self.floor_clearance!r}")
         if not self.nms_radius >= 0:
             raise ValueError(f"NormalStdConfig.nms_radius must be >= 0, got {self.nms_radius!r}")
         if self.workspace is not None:
@@ -72,11 +79,8 @@ class NormalStdConfig:
 
     @classmethod
     def for_bin(cls, spec: "BinSpec", **kwargs: Any) -> "NormalStdConfig":
-        """A config whose workspace is the inside of ``spec``'s bin, up to its rim (for closed-loop runs)."""
-        half = np.asarray(spec.inner_size, dtype=np.float64) / 2
-        centre = np.asarray(spec.center_xy, dtype=np.float64)
-        lo = (*(centre - half), spec.floor_z - 0.01)  # 1 cm below the floor tolerates depth noise
-        hi = (*(centre + half), spec.floor_z + spec.wall_height)
+        """A config whose workspace is the inside of ``spec``'s bin (as the env's ``info['workspace']``)."""
+        lo, hi = spec.workspace()
         return cls(workspace=(tuple(map(float, lo)), tuple(map(float, hi))), **kwargs)
 
     def window(self, full_res: int) -> int:
@@ -104,36 +108,16 @@ class FlatnessMap:
 
 def _depth_and_calibration(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    if "depth" not in obs:
-        raise ValueError("Normal-STD needs obs['depth']")
-    depth = np.asarray(obs["depth"], dtype=np.float64)
-    if depth.ndim == 3 and depth.shape[-1] == 1:
-        depth = depth[..., 0]
-    if depth.ndim != 2 or min(depth.shape) < 2:
-        raise ValueError(f"obs['depth'] must be (H, W) or (H, W, 1), got {np.shape(obs['depth'])}")
-    if not np.all(np.isfinite(depth)):
-        raise ValueError("obs['depth'] contains NaN or inf; missing returns must be 0")
-    if np.any(depth < 0):
-        raise ValueError("obs['depth'] has negative values")
-    if not np.any(depth > 0):
-        raise ValueError("obs['depth'] is empty (no valid depth returns)")
-    if info is None or "intrinsics" not in info or "extrinsics" not in info:
-        raise ValueError("Normal-STD needs info['intrinsics'] (3x3) and info['extrinsics'] (4x4 cam->world)")
-    K = np.asarray(info["intrinsics"], dtype=np.float64)
-    T = np.asarray(info["extrinsics"], dtype=np.float64)
-    if K.shape != (3, 3) or T.shape != (4, 4) or not (np.all(np.isfinite(K)) and np.all(np.isfinite(T))):
-        raise ValueError(f"intrinsics must be finite 3x3 and extrinsics finite 4x4, got {K.shape} and {T.shape}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError("intrinsics focal lengths must be positive")
+    depth = depth_image(obs, "Normal-STD").astype(np.float64)
+    K, T = camera(info, "Normal-STD")
     return depth, K, T
 
 
-def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray],
-               box: tuple[tuple[float, float, float], tuple[float, float, float]] | None) -> np.ndarray:
-    """Pixels inside ``box``, or else inside the bounding box of the observed cloud.
+def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray], box, floor_clearance: float) -> np.ndarray:
+    """Pixels inside ``box`` (else the observed cloud's bounding box) and clear of its floor.
 
-    The depth image also sees the floor around the bin, the flattest surface in view; without this
-    mask every top candidate would land there. Without either, every valid pixel is eligible.
+    The depth image also sees the floor around the bin and the bin floor itself, the flattest
+    surfaces in view; without this mask every top candidate would land there.
     """
     if box is not None:
         lo, hi = np.asarray(box, dtype=np.float64)
@@ -143,6 +127,7 @@ def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray],
         if len(cloud) == 0:
             return fmap.valid
         lo, hi = cloud.min(axis=0), cloud.max(axis=0)
+    lo = lo + np.array([0.0, 0.0, floor_clearance])
     return fmap.valid & np.all((fmap.points >= lo) & (fmap.points <= hi), axis=-1)
 
 
@@ -192,7 +177,10 @@ class NormalStdPolicy(Policy):
         if top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {top_k}")
         fmap = self.flatness(obs, info)
-        heat = np.where(_workspace(fmap, obs, self.config.workspace), fmap.heat, -np.inf)
+        box = self.config.workspace
+        if box is None and info is not None and info.get("workspace") is not None:
+            box = np.asarray(info["workspace"], dtype=np.float64).reshape(2, 3)
+        heat = np.where(_workspace(fmap, obs, box, self.config.floor_clearance), fmap.heat, -np.inf)
         rows, cols, scores = grid_topk(heat, self.config.effective_cell, self.config.max_candidates)
         return select_candidates(fmap.points[rows, cols], fmap.normals[rows, cols], scores, top_k=top_k,
                                  nms_radius=self.config.nms_radius)

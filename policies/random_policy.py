@@ -10,6 +10,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from policies.base import Candidates, Policy
+from policies.observation import point_cloud
 
 
 class RandomPolicy(Policy):
@@ -27,15 +28,9 @@ class RandomPolicy(Policy):
                 top_k: int = 50) -> Candidates:
         if top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {top_k}")
-        if "points" not in obs or "normals" not in obs:
-            raise ValueError("RandomPolicy needs obs['points'] and obs['normals']")
-        points = np.asarray(obs["points"], dtype=np.float64)
-        normals = np.asarray(obs["normals"], dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
-            raise ValueError(f"obs['points'] and obs['normals'] must both be (N, 3), got {points.shape} and "
-                             f"{normals.shape}")
+        points, normals = point_cloud(obs, "RandomPolicy", drop_invalid=True)
         norm = np.linalg.norm(normals, axis=1)
-        valid = np.flatnonzero(np.all(np.isfinite(points), axis=1) & np.isfinite(norm) & (norm > 1e-6))
+        valid = np.flatnonzero(norm > 1e-6)
         if valid.size == 0:
             raise ValueError("the observed cloud has no finite point with a non-zero normal")
         pick = self._rng.choice(valid, size=min(top_k, valid.size), replace=False)

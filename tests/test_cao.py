@@ -207,6 +207,16 @@ def test_training_loss_decreases_and_checkpoint_loads(trained):
     assert path.stat().st_size < 2_000_000
 
 
+def test_training_is_reproducible_under_a_seed(tiny_dataset, tmp_path):
+    config = dataclasses.replace(SMALL, epochs=1, widths=(4, 8))
+    weights = []
+    for name in ("a.pt", "b.pt", "c.pt"):
+        train(tiny_dataset, tmp_path / name, config, seed=0 if name != "c.pt" else 1, threads=1, progress=False)
+        weights.append(torch.load(tmp_path / name, weights_only=True)["state_dict"])
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+    assert not all(torch.equal(weights[0][k], weights[2][k]) for k in weights[0])
+
+
 def test_training_cli_runs_end_to_end(tiny_dataset, tmp_path, capsys):
     out = tmp_path / "cli.pt"
     code = train_main(["--data", str(tiny_dataset), "--out", str(out), "--epochs", "1", "--seed", "1",
@@ -310,3 +320,19 @@ def test_shipped_checkpoint_is_small_and_loads_through_the_registry():
     assert isinstance(policy, CaoPolicy) and policy.meta.get("seed") is not None
     action = policy.act(*observation(synthetic_record(8)))
     assert action.shape == (6,) and np.all(np.isfinite(action))
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped Cao checkpoint")
+def test_shipped_policy_picks_a_parcel_in_a_real_capture(small_scene):
+    """On the shared simulated pile, the shipped model's best suction lies on a parcel's visible surface."""
+    frame = small_scene.frame
+    obs = {"rgb": frame.rgb, "depth": frame.depth[..., None], "points": frame.points, "normals": frame.normals}
+    info = {"intrinsics": frame.intrinsics, "extrinsics": frame.extrinsics}
+    candidates = CaoPolicy().predict(obs, info, top_k=5)
+    assert 1 <= len(candidates) <= 5
+    rc, z = project_points(candidates.points, frame.intrinsics, frame.extrinsics)
+    pix = np.rint(rc).astype(int)
+    assert np.allclose(frame.depth[pix[:, 0], pix[:, 1]], z, atol=1e-3)  # on the observed surface
+    assert frame.segmentation[pix[0, 0], pix[0, 1]] >= 0  # the best one on a parcel, not the bin
+    to_camera = frame.extrinsics[:3, 3] - candidates.points
+    assert np.all(np.einsum("ij,ij->i", candidates.normals, to_camera) > 0)  # normals face the camera

@@ -220,6 +220,11 @@ def test_policy_returns_ranked_vertical_candidates_and_a_valid_action(checkpoint
     action = policy.act(obs, info)
     assert action.shape == (6,) and np.all(np.isfinite(action))
     assert np.linalg.norm(action[3:]) == pytest.approx(1, abs=1e-5) and action[5] >= math.cos(math.radians(30))
+    # A workspace box keeps every candidate inside it.
+    box = ((-0.1, -0.1, -0.01), (0.1, 0.1, 0.5))
+    boxed = DexNetPolicy(checkpoint=checkpoint[0], workspace=box, num_seeds=60, num_gmm_samples=20)
+    inside = boxed.predict(obs, info, top_k=10)
+    assert len(inside) >= 1 and np.all((inside.points >= box[0]) & (inside.points <= box[1]))
     # Reproducible under reset(seed) (a smaller search keeps this quick).
     small = DexNetPolicy(checkpoint=checkpoint[0], num_seeds=60, num_gmm_samples=20)
     small.reset(7)
@@ -235,6 +240,8 @@ def test_policy_rejects_bad_observations_and_missing_checkpoints(checkpoint, tmp
         DexNetPolicy(checkpoint=tmp_path / "nowhere.pt")
     with pytest.raises(ValueError, match="crop_size"):
         DexNetPolicy(checkpoint=checkpoint[0], crop_size=64)
+    with pytest.raises(ValueError, match="workspace"):
+        DexNetPolicy(checkpoint=checkpoint[0], workspace=((0, 0, 0), (0, 1, 1)))
     policy = DexNetPolicy(checkpoint=checkpoint[0])
     obs, info = observation(synthetic_scene(5))
     nan_depth = dict(obs, depth=np.where(obs["depth"] > 0.9, np.nan, obs["depth"]))
@@ -253,12 +260,13 @@ def test_policy_rejects_bad_observations_and_missing_checkpoints(checkpoint, tmp
 
 
 def test_shipped_checkpoint_loads_through_the_registry_and_records_its_provenance():
-    from policies.dexnet.policy import DEFAULT_CHECKPOINT
+    from policies.dexnet.policy import DEFAULT_CHECKPOINT, DexNetPolicy
     from policies.registry import make_policy
 
     policy = make_policy("dexnet")
     assert policy.checkpoint == DEFAULT_CHECKPOINT and DEFAULT_CHECKPOINT.stat().st_size < 2_000_000
-    assert policy.config == DexNetConfig()  # shipped with the default crops, network and search
+    assert policy.config == DexNetConfig()  # shipped with the default crops and network
+    assert DexNetPolicy(num_seeds=100).config.num_seeds == 100
     meta = policy.metadata
     assert meta["command"].startswith("python -m policies.dexnet.train") and "seed" in meta["train_config"]
     assert meta["history"]["final_loss"] < meta["history"]["initial_loss"]

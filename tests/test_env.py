@@ -16,7 +16,7 @@ from parcelpick_env.envs.scripted import top_patch_action
 
 SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256)
 LIGHT_BOX = BoxScene([PlacedBox((0.30, 0.20, 0.10), 0.5)])
-LONG_HEAVY_BOX = BoxScene([PlacedBox((0.60, 0.15, 0.10), 0.8)])  # heavy for a 10 mm cup at 22 cm
+LONG_HEAVY_BOX = BoxScene([PlacedBox((0.60, 0.15, 0.10), 0.8)])  # 1.7 N m at 22 cm: beyond the 20 mm cup's 0.98
 THREE_BOXES = BoxScene([PlacedBox((0.20, 0.15, 0.10), 0.4, (-0.17, 0.06), 0.3),
                         PlacedBox((0.25, 0.20, 0.06), 0.8, (0.15, -0.08), -0.2),
                         PlacedBox((0.15, 0.15, 0.12), 0.3, (0.02, 0.15))])
@@ -226,15 +226,17 @@ def test_suction_ring_conditions_known_values():
 
 
 def test_material_limit_matches_the_analytic_boundary():
-    """1 kg box, top-down: sqrt(2) m g d <= pi r k holds up to d = 3.5 cm at r = 10 mm, k = 15.6."""
+    """1 kg box, top-down: sqrt(2) m g d <= pi r k holds up to d* (7.1 cm for the env's 20 mm cup)."""
     env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0)]))
     try:
+        suction = env.config.suction
+        limit = np.pi * suction.cup_radius * suction.material_k / (np.sqrt(2) * 1.0 * 9.8)
         outcomes = {}
-        for offset in (0.03, 0.045):
+        for offset in (0.8 * limit, 1.25 * limit):
             env.reset(seed=0)
             _, _, _, _, info = env.step(pose(env.scene.parcels[0].position + [offset, 0.0, 0.05]))
             outcomes[offset] = (info["outcome"], info["failure_cause"])
-        assert outcomes[0.03] == ("success", None)
-        assert outcomes[0.045][0] == "dropped" and outcomes[0.045][1].startswith("material")
+        assert outcomes[0.8 * limit] == ("success", None)
+        assert outcomes[1.25 * limit][0] == "dropped" and outcomes[1.25 * limit][1].startswith("material")
     finally:
         env.close()

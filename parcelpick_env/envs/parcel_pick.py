@@ -1,7 +1,8 @@
 """ParcelPick-v0: clear a bin of parcels with a suction cup on a Kinova Gen3, one pick per step.
 
 Observation (no ground truth): ``points``/``normals`` (N, 3) float32, world frame, N fixed (the
-camera cloud sampled without replacement, or padded by repeats, with the env's ``np_random``);
+camera cloud cropped to the inside of the bin, the cell's region of interest, then sampled without
+replacement, or padded by repeats, with the env's ``np_random``);
 ``rgb`` (H, W, 3) uint8; ``depth`` (H, W, 1) float32 metres. Camera calibration is in
 ``info['intrinsics']`` (3x3) and ``info['extrinsics']`` (4x4 camera->world, OpenCV).
 
@@ -53,6 +54,13 @@ from parcelpick_env.sim.simulator import Simulator
 OUT_OF_BIN_TOLERANCE = 0.01  # m: a COM this far beyond the inner walls has left the bin
 
 
+def pixel_from_action(action: np.ndarray, width: int, height: int) -> tuple[int, int]:
+    """The (row, col) a ``pixel``-mode action in [-1, 1]^2 (column, row) selects."""
+    col = int(round((float(action[0]) + 1) / 2 * (width - 1)))
+    row = int(round((float(action[1]) + 1) / 2 * (height - 1)))
+    return row, col
+
+
 class ParcelPickEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
 
@@ -99,11 +107,7 @@ class ParcelPickEnv(gym.Env):
 
     # ------------------------------------------------------------------------------------ helpers
     def _bin_box(self) -> tuple[np.ndarray, np.ndarray]:
-        spec, m = self._bin, self.config.action_margin
-        cx, cy = spec.center_xy
-        sx, sy = spec.inner_size
-        lo = np.array([cx - sx / 2 - m, cy - sy / 2 - m, spec.floor_z - m])
-        hi = np.array([cx + sx / 2 + m, cy + sy / 2 + m, spec.floor_z + 1.0])  # piles can top the rim
+        lo, hi = self._bin.workspace(margin=self.config.action_margin)
         return lo, hi
 
     def _build_scene(self, seed: int, factory) -> Scene:
@@ -129,13 +133,15 @@ class ParcelPickEnv(gym.Env):
 
     def _observe(self) -> dict[str, np.ndarray]:
         self.frame = frame = self.camera.capture(self.sim, self.scene, self.np_random)
-        n, total = self.config.num_points, len(frame.points)
+        n = self.config.num_points
+        roi = np.flatnonzero(self._bin.contains(frame.points))  # the cell's region of interest: inside the bin
+        total = len(roi)
         if total == 0:
             idx = np.zeros(0, dtype=np.int64)
         elif total >= n:
-            idx = np.sort(self.np_random.choice(total, n, replace=False))
+            idx = roi[np.sort(self.np_random.choice(total, n, replace=False))]
         else:
-            idx = np.concatenate([np.arange(total), np.sort(self.np_random.choice(total, n - total, replace=True))])
+            idx = roi[np.concatenate([np.arange(total), np.sort(self.np_random.choice(total, n - total, replace=True))])]
         points = np.zeros((n, 3), np.float32)
         normals = np.zeros((n, 3), np.float32)
         normals[:, 2] = 1.0
@@ -157,6 +163,7 @@ class ParcelPickEnv(gym.Env):
             "R_object": s["cleared"] / s["placed"] if s["placed"] else 0.0,
             "consecutive_failures": s["consecutive"],
             "intrinsics": self.frame.intrinsics.copy(), "extrinsics": self.frame.extrinsics.copy(),
+            "workspace": self._bin.workspace(),  # the cell's known geometry (bin floor and walls), not ground truth
             "scene_seed": self.scene.seed,
         }
         info.update(extra)
@@ -185,8 +192,7 @@ class ParcelPickEnv(gym.Env):
 
     def _pixel_to_pose(self, a: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, str | None]:
         frame = self.frame
-        col = int(round((a[0] + 1) / 2 * (frame.width - 1)))
-        row = int(round((a[1] + 1) / 2 * (frame.height - 1)))
+        row, col = pixel_from_action(a, frame.width, frame.height)
         lookup = np.full((frame.height, frame.width), -1, dtype=np.int64)
         lookup[frame.point_pixels[:, 0], frame.point_pixels[:, 1]] = np.arange(len(frame.points))
         k = lookup[row, col]

@@ -42,13 +42,13 @@ VELOCITY_LIMIT = 0.8727  # rad/s, every joint (V12)
 
 @dataclass(frozen=True)
 class SuctionToolSpec:
-    """The tool on the flange. The cup radius matches SuctionConfig.cup_radius by default."""
+    """The tool on the flange. The cup radius matches the env's default cup (EnvConfig.suction)."""
 
     flange_radius: float = 0.035
     flange_length: float = 0.012
     rod_radius: float = 0.008
     rod_length: float = 0.14
-    cup_radius: float = 0.010
+    cup_radius: float = 0.020
     cup_length: float = 0.015
     mass: float = 0.25
 

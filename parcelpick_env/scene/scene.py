@@ -25,6 +25,24 @@ class BinSpec:
         if min(self.inner_size) <= 0 or self.wall_height <= 0 or self.wall_thickness <= 0:
             raise ValueError(f"BinSpec dimensions must be positive, got {self}")
 
+    def workspace(self, margin: float = 0.0, height: float = 1.0) -> np.ndarray:
+        """(2, 3) [min, max] box over the inner floor: where picks happen (piles may top the rim)."""
+        cx, cy = self.center_xy
+        sx, sy = self.inner_size
+        return np.array([[cx - sx / 2 - margin, cy - sy / 2 - margin, self.floor_z - margin],
+                         [cx + sx / 2 + margin, cy + sy / 2 + margin, self.floor_z + height]])
+
+    def contains(self, points: np.ndarray, margin: float = 0.0, floor_tolerance: float = 0.01) -> np.ndarray:
+        """Mask of points above the bin's inner floor, within ``margin`` of its inner walls in x and y.
+
+        The camera also sees the floor around the bin; this is the region of interest a real cell crops
+        to. ``margin=wall_thickness`` keeps the wall tops; ``floor_tolerance`` absorbs depth noise.
+        """
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        half = np.asarray(self.inner_size, dtype=np.float64) / 2 + margin
+        offset = np.abs(pts[:, :2] - np.asarray(self.center_xy, dtype=np.float64))
+        return np.all(offset <= half, axis=1) & (pts[:, 2] >= self.floor_z - floor_tolerance)
+
     def meshes(self) -> list[trimesh.Trimesh]:
         """Floor and four walls as world-frame boxes (used by collision scoring and rendering)."""
         sx, sy = self.inner_size

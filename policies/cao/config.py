@@ -24,8 +24,10 @@ class CaoConfig:
     ``seal_channels``: label columns multiplied into the seal target (default: the seal score alone,
     as in SuctionNet's baseline). ``centre_sigma_scale``: the centre Gaussian's sigma as a fraction of
     an object's equivalent radius in pixels (sqrt(visible area / pi)), at least ``min_centre_sigma_px``.
-    ``box_filter``/``grid_cell``/``grid_top_k``: the extraction shared with Normal-STD, in
-    observation pixels. ``depth_scale``: metres of relief per unit of the normalised depth channel.
+    ``box_filter``/``grid_cell``/``grid_top_k``: the extraction shared with Normal-STD; the sizes are
+    pixels of a ``reference_width``-wide image, scaled to the observation's width so they cover the
+    same patch of the scene at any resolution.
+    ``depth_scale``: metres of relief per unit of the normalised depth channel.
     """
 
     input_height: int = 120
@@ -39,6 +41,7 @@ class CaoConfig:
     box_filter: int = 15
     grid_cell: int = 10
     grid_top_k: int = 1024
+    reference_width: int = 640
     nms_radius: float = 0.02
     # training
     epochs: int = 30
@@ -69,6 +72,7 @@ class CaoConfig:
         need(self.box_filter >= 1 and self.box_filter % 2 == 1, f"box_filter must be odd >= 1, got {self.box_filter}")
         need(self.grid_cell >= 1, f"grid_cell must be >= 1, got {self.grid_cell}")
         need(self.grid_top_k >= 1, f"grid_top_k must be >= 1, got {self.grid_top_k}")
+        need(self.reference_width >= 1, f"reference_width must be >= 1, got {self.reference_width}")
         need(self.epochs >= 1 and self.batch_size >= 1, f"epochs and batch_size must be >= 1")
         need(self.weight_decay >= 0, f"weight_decay must be >= 0, got {self.weight_decay}")
         need(0.0 <= self.val_fraction < 1.0, f"val_fraction must be in [0, 1), got {self.val_fraction}")

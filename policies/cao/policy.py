@@ -13,11 +13,10 @@ import torch.nn.functional as F
 from policies.base import Candidates, Policy
 from policies.cao.config import CaoConfig
 from policies.cao.network import CaoNet, prepare_input
-from policies.cao.targets import check_camera
 from policies.heatmap import box_filter, grid_topk, pixels_to_candidates
+from policies.observation import camera, depth_image, point_cloud, rgb_image
 
 DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoint.pt")
-REFERENCE_WIDTH = 640  # box_filter and grid_cell are given in pixels of a 640-wide image
 
 
 def load_checkpoint(path: str | os.PathLike) -> tuple[CaoNet, dict[str, Any]]:
@@ -43,27 +42,11 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[CaoNet, dict[str, Any]]:
 def _observation(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Validated (rgb, depth (H, W), intrinsics, extrinsics); a clear ValueError for anything malformed."""
-    for key in ("rgb", "depth"):
-        if key not in obs:
-            raise ValueError(f"Cao policy needs obs[{key!r}] (RGB-D input)")
-    rgb, depth = np.asarray(obs["rgb"]), np.asarray(obs["depth"])
-    if depth.ndim == 3 and depth.shape[-1] == 1:
-        depth = depth[..., 0]
-    if depth.ndim != 2 or min(depth.shape) < 2:
-        raise ValueError(f"obs['depth'] must be (H, W) or (H, W, 1), got {np.shape(obs['depth'])}")
-    if rgb.shape != depth.shape + (3,):
-        raise ValueError(f"obs['rgb'] must be {depth.shape + (3,)} to match the depth image, got {rgb.shape}")
-    if rgb.dtype != np.uint8:
-        raise ValueError(f"obs['rgb'] must be uint8, got {rgb.dtype}")
-    depth = depth.astype(np.float32)
-    if not np.isfinite(depth).all():
-        raise ValueError("obs['depth'] contains NaN or inf; missing returns must be 0")
-    if (depth < 0).any():
-        raise ValueError("obs['depth'] has negative values")
-    if info is None or "intrinsics" not in info or "extrinsics" not in info:
-        raise ValueError("Cao policy needs info['intrinsics'] (3x3) and info['extrinsics'] (4x4 cam->world)")
-    K, T = np.asarray(info["intrinsics"], dtype=np.float64), np.asarray(info["extrinsics"], dtype=np.float64)
-    check_camera(K, T)
+    if "rgb" not in obs:
+        raise ValueError("Cao policy needs obs['rgb'] (RGB-D input)")
+    depth = depth_image(obs, "Cao policy", require_returns=False)
+    rgb = rgb_image(obs, depth.shape, "Cao policy")
+    K, T = camera(info, "Cao policy")
     return rgb, depth, K, T
 
 
@@ -73,8 +56,8 @@ class CaoPolicy(Policy):
     ``checkpoint=None`` loads the checkpoint shipped next to this file. Extraction follows SuctionNet:
     a box filter, the best pixel per grid cell, the top ``grid_top_k`` cells, then NMS and top-k.
     ``threads``: torch CPU threads for the forward pass (restored afterwards; None keeps torch's
-    setting). One is the default: this small net gains nothing from more, and on a shared, busy CPU
-    OpenMP barriers made two threads ~50x slower than one in our measurements.
+    setting). One is the default: this small net gains little from more, and on a shared, busy CPU
+    OpenMP barriers made two threads 7x to 70x slower than one in our measurements.
     """
 
     name = "cao"
@@ -108,8 +91,8 @@ class CaoPolicy(Policy):
         return maps[0].numpy()
 
     def _extraction_sizes(self, width: int) -> tuple[int, int]:
-        """Box filter and grid cell scaled from the 640-wide reference, so they cover the same patch."""
-        scale = width / REFERENCE_WIDTH
+        """Box filter and grid cell scaled from the reference width, so they cover the same patch."""
+        scale = width / self.config.reference_width
         box = max(1, int(round(self.config.box_filter * scale))) | 1
         cell = max(1, int(round(self.config.grid_cell * scale)))
         return box, cell
@@ -124,13 +107,8 @@ class CaoPolicy(Policy):
         box, cell = self._extraction_sizes(depth.shape[1])
         score = box_filter(seal * centre, box, valid=depth > 0)
         rows, cols, scores = grid_topk(score, cell=cell, top_k=self.config.grid_top_k)
-        points, normals = obs.get("points"), obs.get("normals")
-        if points is not None and normals is not None:
-            points, normals = np.asarray(points), np.asarray(normals)
-            if points.ndim != 2 or points.shape[1:] != (3,) or normals.shape != points.shape:
-                raise ValueError(f"obs['points'] and obs['normals'] must both be (N, 3), got "
-                                 f"{points.shape} and {normals.shape}")
-            if not (np.isfinite(points).all() and np.isfinite(normals).all()):
-                raise ValueError("obs['points'] / obs['normals'] contain NaN or inf")
+        points = normals = None
+        if "points" in obs and "normals" in obs:
+            points, normals = point_cloud(obs, "Cao policy")
         return pixels_to_candidates(rows, cols, scores, depth, K, T, cloud_points=points, cloud_normals=normals,
                                     nms_radius=self.config.nms_radius, top_k=top_k)

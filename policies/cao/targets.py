@@ -14,6 +14,7 @@ import numpy as np
 
 from parcelpick_env.camera.frame import BACKGROUND
 from policies.cao.config import CaoConfig
+from policies.observation import check_camera
 
 
 @dataclass
@@ -67,17 +68,6 @@ def frame_from_record(record: dict[str, np.ndarray]) -> LabelledFrame:
                          extrinsics=record["extrinsics"], points=np.asarray(record["points"]),
                          labels=np.asarray(record["labels"]), object_ids=np.arange(len(centres)),
                          object_centres=centres)
-
-
-def check_camera(intrinsics: np.ndarray, extrinsics: np.ndarray) -> None:
-    """Clear errors for calibration that would otherwise fail deep inside a projection."""
-    K, T = np.asarray(intrinsics), np.asarray(extrinsics)
-    if K.shape != (3, 3) or T.shape != (4, 4):
-        raise ValueError(f"intrinsics must be (3, 3) and extrinsics (4, 4), got {K.shape} and {T.shape}")
-    if not (np.isfinite(K).all() and np.isfinite(T).all()):
-        raise ValueError("intrinsics and extrinsics must be finite")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"intrinsics need positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
 
 
 def scale_intrinsics(intrinsics: np.ndarray, from_hw: tuple[int, int], to_hw: tuple[int, int]) -> np.ndarray:

@@ -20,13 +20,14 @@ import torch
 from scipy.spatial import cKDTree
 
 from policies.base import Candidates, Policy
+from policies.observation import camera, depth_image, point_cloud
 from policies.postprocess import select_candidates
 
 from .cem import fit_gmm
 from .config import DexNetConfig
 from .crops import DepthMosaic
 from .network import load_checkpoint
-from .projection import approach_angles, check_camera, eligible_points
+from .projection import approach_angles, eligible_points
 
 DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoint.pt")
 # Search settings a caller may change; the rest of DexNetConfig is fixed by what the network was trained on.
@@ -51,48 +52,44 @@ class EligibleSet:
 def _observation(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Validated (depth, points, normals, K, T); a clear ValueError for anything unusable."""
-    for key in ("depth", "points", "normals"):
-        if key not in obs:
-            raise ValueError(f"DexNetPolicy needs obs[{key!r}]")
-    if info is None or "intrinsics" not in info or "extrinsics" not in info:
-        raise ValueError("DexNetPolicy needs info['intrinsics'] (3x3) and info['extrinsics'] (4x4 cam->world)")
-    depth = np.asarray(obs["depth"], dtype=np.float32)
-    if depth.ndim == 3 and depth.shape[-1] == 1:
-        depth = depth[..., 0]
-    if depth.ndim != 2 or min(depth.shape) < 2:
-        raise ValueError(f"obs['depth'] must be (H, W) or (H, W, 1), got {np.shape(obs['depth'])}")
-    if not np.all(np.isfinite(depth)):
-        raise ValueError("obs['depth'] contains NaN or inf; missing returns must be 0")
-    if np.any(depth < 0):
-        raise ValueError("obs['depth'] has negative values")
-    if not np.any(depth > 0):
-        raise ValueError("obs['depth'] is empty (no valid depth returns)")
-    points = np.asarray(obs["points"], dtype=np.float64)
-    normals = np.asarray(obs["normals"], dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
-        raise ValueError(f"obs['points'] and obs['normals'] must both be (N, 3), got {points.shape} and "
-                         f"{normals.shape}")
+    depth = depth_image(obs, "DexNetPolicy")
+    points, normals = point_cloud(obs, "DexNetPolicy")
     if len(points) == 0:
         raise ValueError("obs['points'] is empty")
-    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
-        raise ValueError("obs['points'] or obs['normals'] contains NaN or inf")
-    K, T = check_camera(info["intrinsics"], info["extrinsics"])
+    K, T = camera(info, "DexNetPolicy")
     return depth, points, normals, K, T
 
 
 class DexNetPolicy(Policy):
     name = "dexnet"
 
-    def __init__(self, checkpoint: str | Path | None = None, seed: int | None = 0, **search: Any) -> None:
+    def __init__(self, checkpoint: str | Path | None = None, seed: int | None = 0,
+                 workspace: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None,
+                 **search: Any) -> None:
         """Load ``checkpoint`` (default: the one shipped next to this file); ``search`` overrides CEM
-        settings (``SEARCH_FIELDS``) without touching what the network was trained on."""
+        settings (``SEARCH_FIELDS``) without touching what the network was trained on.
+
+        ``workspace`` is a world box ((xmin, ymin, zmin), (xmax, ymax, zmax)) candidates must lie in,
+        e.g. the bin for closed-loop runs: the network was trained on clouds cropped to the bin, so the
+        floor around it, which the env's cloud includes, is unfamiliar and may score well.
+        """
         unknown = set(search) - set(SEARCH_FIELDS)
         if unknown:
             raise ValueError(f"DexNetPolicy: unknown or fixed-by-checkpoint settings {sorted(unknown)}; "
                              f"adjustable: {SEARCH_FIELDS}")
+        self.workspace = None
+        if workspace is not None:
+            box = np.asarray(workspace, dtype=np.float64)
+            if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
+                raise ValueError(f"workspace must be ((xmin, ymin, zmin), (xmax, ymax, zmax)) with min < max, "
+                                 f"got {workspace!r}")
+            self.workspace = box
         self.checkpoint = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.model, self.metadata = load_checkpoint(self.checkpoint)
-        self.config: DexNetConfig = dataclasses.replace(self.model.config, **search)
+        # Crop and network fields come from the checkpoint; search fields from today's defaults, then overrides.
+        defaults = DexNetConfig()
+        self.config: DexNetConfig = dataclasses.replace(
+            self.model.config, **{**{name: getattr(defaults, name) for name in SEARCH_FIELDS}, **search})
         self._rng = np.random.default_rng(seed)
 
     def reset(self, seed: int | None = None) -> None:
@@ -102,12 +99,16 @@ class DexNetPolicy(Policy):
 
     def eligible(self, depth: np.ndarray, points: np.ndarray, normals: np.ndarray, K: np.ndarray,
                  T: np.ndarray) -> EligibleSet:
-        """Cloud points seen by the depth image with an approach within the allowed angle of vertical."""
+        """Cloud points (inside the workspace, if any) seen by the depth image with an approach within the
+        allowed angle of vertical."""
+        if self.workspace is not None:
+            inside = np.all((points >= self.workspace[0]) & (points <= self.workspace[1]), axis=1)
+            points, normals = points[inside], normals[inside]
         keep, uv, z, unit = eligible_points(depth, points, normals, K, T, self.config.min_vertical_cos,
                                             self.config.visibility_tolerance)
         return EligibleSet(points=points[keep], normals=unit, uv=uv, depth=z, extrinsics=T)
 
-    def _quality(self, mosaic: DepthMosaic, cand: EligibleSet, idx: np.ndarray, K: np.ndarray) -> np.ndarray:
+    def score(self, mosaic: DepthMosaic, cand: EligibleSet, idx: np.ndarray, K: np.ndarray) -> np.ndarray:
         image_angle, tilt = approach_angles(cand.normals[idx], cand.extrinsics)
         crops = mosaic.crops(cand.uv[idx], cand.depth[idx], image_angle, K[0, 0], K[1, 1], self.config)
         q = self.model.quality(crops, torch.as_tensor(cand.depth[idx], dtype=torch.float32),
@@ -123,7 +124,7 @@ class DexNetPolicy(Policy):
         tree = cKDTree(feature, balanced_tree=False, compact_nodes=False)  # quicker to build, same answers
         population = rng.choice(len(cand), size=min(cfg.num_seeds, len(cand)), replace=False)
         quality = np.full(len(cand), np.nan)
-        quality[population] = self._quality(mosaic, cand, population, K)
+        quality[population] = self.score(mosaic, cand, population, K)
         for _ in range(cfg.cem_iterations):
             num_elite = max(1, math.ceil(cfg.elite_fraction * len(population)))
             elite = population[np.argsort(-quality[population], kind="stable")[:num_elite]]
@@ -135,7 +136,7 @@ class DexNetPolicy(Policy):
                 break
             new = population[np.isnan(quality[population])]
             if len(new):
-                quality[new] = self._quality(mosaic, cand, new, K)
+                quality[new] = self.score(mosaic, cand, new, K)
         scored = np.flatnonzero(~np.isnan(quality))
         return scored, quality[scored]
 

@@ -9,19 +9,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def check_camera(intrinsics: np.ndarray, extrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Validated float64 copies of K (3, 3) and T_world_cam (4, 4)."""
-    K = np.asarray(intrinsics, dtype=np.float64)
-    T = np.asarray(extrinsics, dtype=np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"intrinsics must be a finite 3x3 matrix with positive focal lengths, got shape {K.shape}")
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"extrinsics must be a finite 4x4 camera-to-world matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
-        raise ValueError("extrinsics rotation block is not orthonormal")
-    return K, T
-
 
 def world_to_camera(points: np.ndarray, extrinsics: np.ndarray) -> np.ndarray:
     """(N, 3) world points -> (N, 3) camera-frame points."""

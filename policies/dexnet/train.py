@@ -33,10 +33,12 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from policies.observation import check_camera
+
 from .config import DexNetConfig, TrainConfig
 from .crops import DepthMosaic
 from .network import SuctionQualityNet, save_checkpoint
-from .projection import approach_angles, check_camera, eligible_points
+from .projection import approach_angles, eligible_points
 
 SCENE_KEYS = ("depth", "intrinsics", "extrinsics", "points", "normals", "labels")
 TARGET_CHANNELS = (0, 1, 2)  # seal, wrench, collision in the dataset's label order

@@ -16,6 +16,7 @@ from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
 from policies.diffusion.model import DiffusionSuction
 from policies.diffusion.pointnet2 import fold_batchnorm
 from policies.diffusion.neighbourhood import compute_neighbourhoods, grid_sample, sample_indices
+from policies.observation import point_cloud
 from policies.postprocess import NMS_RADIUS, select_candidates
 
 MIN_POINTS = 16  # below this a cloud cannot hold a suction candidate worth ranking: empty Candidates
@@ -69,19 +70,9 @@ class DiffusionSuctionPolicy(Policy):
         if seed is not None or not hasattr(self, "_generator"):
             self._generator = torch.Generator(device=self.device).manual_seed(0 if seed is None else int(seed))
 
-    def _validated(self, obs: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        if "points" not in obs or "normals" not in obs:
-            raise ValueError(f"observation needs 'points' and 'normals', got keys {sorted(obs)}")
-        points = np.asarray(obs["points"], dtype=np.float32)
-        normals = np.asarray(obs["normals"], dtype=np.float32)
-        if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
-            raise ValueError(f"need points and normals of shape (N, 3), got {points.shape} and {normals.shape}")
-        ok = np.isfinite(points).all(1) & np.isfinite(normals).all(1)  # camera dropouts
-        return points[ok], normals[ok]
-
     def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
                 top_k: int = 50) -> Candidates:
-        points, normals = self._validated(obs)
+        points, normals = point_cloud(obs, "Diffusion-Suction", drop_invalid=True, dtype=np.float32)
         if len(points) < MIN_POINTS:
             self.last_trajectory = None
             return _empty()

@@ -22,12 +22,13 @@ import numpy as np
 
 import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
 from parcelpick_env.camera.config import CameraConfig
+from policies.sb3.features import DEFAULT_GRID, depth_features
 
 
 class DepthOnly(gym.ObservationWrapper):
-    """Keep only the depth image, block-mean pooled to ``grid`` (rows, cols) and scaled to [0, 1]."""
+    """Keep only the depth image, as ``depth_features`` (the same features the SB3 policy computes)."""
 
-    def __init__(self, env: gym.Env, grid: tuple[int, int] = (12, 16)) -> None:
+    def __init__(self, env: gym.Env, grid: tuple[int, int] = DEFAULT_GRID) -> None:
         super().__init__(env)
         h, w, _ = env.observation_space["depth"].shape
         rows, cols = grid
@@ -38,11 +39,7 @@ class DepthOnly(gym.ObservationWrapper):
         self.observation_space = gym.spaces.Box(0.0, 1.0, (rows * cols,), np.float32)
 
     def observation(self, obs):
-        depth = obs["depth"][..., 0]
-        rows, cols = self.grid
-        h, w = depth.shape
-        pooled = depth.reshape(rows, h // rows, cols, w // cols).mean(axis=(1, 3))
-        return np.clip(pooled / self.far, 0.0, 1.0).astype(np.float32).ravel()
+        return depth_features(obs["depth"], self.grid, self.far)
 
 
 def make_env(seed: int, num_parcels: int = 3, layout: str = "scattered", object_set: str = "rectangular") -> gym.Env:

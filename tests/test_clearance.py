@@ -1,0 +1,122 @@
+"""Closed-loop clearance evaluator: backend-independent episodes, Table V pooling, validation, replays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, episode_tasks, evaluate_clearance,
+                            format_table, main, summarise)
+from parcelpick_env.camera.config import CameraConfig
+
+# Two parcels, a tiny camera and cloud, three attempts: a few seconds per episode on one core.
+TINY = dict(policy="random", objects=("rectangular",), layouts=("scattered",), episodes=1, num_parcels=2,
+            max_attempts=3, env_kwargs=dict(camera=CameraConfig(width=96, height=72), num_points=256))
+EPISODE_FIELDS = ("objects", "layout", "episode", "seed", "attempts", "successes", "parcels_placed",
+                  "parcels_cleared", "reason", "outcomes")
+
+
+def _episodes(summary: dict) -> list[dict]:
+    return [{k: e[k] for k in EPISODE_FIELDS} for e in summary["episodes"]]
+
+
+def test_local_and_ray_backends_give_identical_episodes(monkeypatch):
+    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    import ray
+
+    local = evaluate_clearance(ClearanceConfig(**TINY, workers=1, backend="local"), progress=False)
+    try:
+        remote = evaluate_clearance(ClearanceConfig(**TINY, workers=1, backend="ray"), progress=False)
+    finally:
+        ray.shutdown()
+    assert _episodes(local) == _episodes(remote)
+    (ep,) = local["episodes"]
+    assert 1 <= ep["attempts"] <= 3 and 0 <= ep["successes"] <= ep["attempts"]
+    assert ep["parcels_placed"] >= 1 and ep["parcels_cleared"] == ep["successes"]
+    assert sum(ep["outcomes"].values()) == ep["attempts"] and set(ep["outcomes"]) <= set(OUTCOMES)
+    assert ep["seed"] == episode_tasks(ClearanceConfig(**TINY))[0].seed
+    assert local["overall"]["attempts"] == ep["attempts"]
+
+
+def test_episode_seeds_depend_on_grid_position_not_workers():
+    base = dict(TINY, objects=("rectangular", "mixed"), layouts=("scattered", "stacked"), episodes=2)
+    one, many = episode_tasks(ClearanceConfig(**base)), episode_tasks(ClearanceConfig(**base, workers=4))
+    assert [t.seed for t in one] == [t.seed for t in many]
+    assert len({t.seed for t in one}) == 8
+    # A cell keeps its seeds when the grid around it shrinks.
+    mixed_only = episode_tasks(ClearanceConfig(**dict(base, objects=("mixed",))))
+    assert [t.seed for t in mixed_only] == [t.seed for t in one if t.objects == "mixed"]
+    assert episode_tasks(ClearanceConfig(**dict(base, seed=1)))[0].seed != one[0].seed
+
+
+def _result(objects, layout, attempts, successes, placed, cleared, outcomes, episode=0):
+    return EpisodeResult(objects=objects, layout=layout, episode=episode, seed=episode, attempts=attempts,
+                         successes=successes, parcels_placed=placed, parcels_cleared=cleared,
+                         reason="cleared" if placed == cleared else "consecutive_failures",
+                         outcomes=outcomes, replay=None, wall_time_s=0.0)
+
+
+def test_summarise_pools_episodes_per_cell_and_overall():
+    results = [
+        _result("rectangular", "scattered", 4, 3, 3, 3, {"success": 3, "no_seal": 1}, episode=0),
+        _result("rectangular", "scattered", 6, 2, 4, 2, {"success": 2, "collision": 3, "dropped": 1}, episode=1),
+        _result("planar", "stacked", 5, 1, 2, 1, {"success": 1, "unreachable": 4}),
+    ]
+    s = summarise(results)
+    rect = s["cells"]["rectangular/scattered"]
+    # Pooled, not averaged per episode: 5/10 attempts and 5/7 parcels.
+    assert (rect["attempts"], rect["successes"], rect["placed"], rect["cleared"], rect["episodes"]) == (10, 5, 7, 5, 2)
+    assert rect["R_grasp"] == pytest.approx(50.0)
+    assert rect["R_object"] == pytest.approx(100.0 * 5 / 7)
+    assert rect["outcomes"] == {"success": 5, "no_seal": 1, "collision": 3, "dropped": 1}
+    planar = s["cells"]["planar/stacked"]
+    assert planar["R_grasp"] == pytest.approx(20.0) and planar["R_object"] == pytest.approx(50.0)
+    o = s["overall"]
+    assert (o["attempts"], o["successes"], o["placed"], o["cleared"]) == (15, 6, 9, 6)
+    assert o["R_grasp"] == pytest.approx(40.0)
+    assert o["R_object"] == pytest.approx(100.0 * 6 / 9)
+    assert o["outcomes"]["unreachable"] == 4 and o["outcomes"]["success"] == 6
+
+    table = format_table(s)
+    lines = table.splitlines()
+    assert lines[0] == "| object set | scattered | stacked |"
+    assert "| rectangular | 50.00 / 71.43 | – |" in lines
+    assert "| planar | – | 20.00 / 50.00 |" in lines
+    assert [ln.split(" | ")[0] for ln in lines[2:6]] == ["| rectangular", "| planar", "| cylindrical", "| mixed"]
+    assert "R_grasp 40.00%" in table and "R_object 66.67%" in table and "(6/15 attempts, 6/9 parcels)" in table
+    assert "unreachable 4" in table and "invalid_action 0" in table
+
+
+def test_summarise_of_episode_without_attempts_is_not_a_division_by_zero():
+    s = summarise([_result("mixed", "stacked", 0, 0, 0, 0, {})])
+    assert s["cells"]["mixed/stacked"]["R_grasp"] == 0.0 and s["overall"]["R_object"] == 0.0
+
+
+@pytest.mark.parametrize("bad", [dict(objects=("spheres",)), dict(objects=()), dict(layouts=("piled",)),
+                                 dict(episodes=0), dict(num_parcels=0), dict(num_parcels=51),
+                                 dict(backend="spark"), dict(workers=0), dict(seed=-1), dict(max_attempts=0),
+                                 dict(env_kwargs={"num_parcels": 3})])
+def test_config_rejects_bad_values(bad):
+    with pytest.raises(ValueError):
+        ClearanceConfig(**bad)
+
+
+def test_cli_unknown_policy_exits_2_with_message(capsys):
+    assert main(["--policy", "nope"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown policy 'nope'" in err and "random" in err
+
+
+def test_cli_bad_value_exits_2(capsys):
+    assert main(["--policy", "random", "--episodes", "0"]) == 2
+    assert "episodes must be >= 1" in capsys.readouterr().err
+
+
+def test_record_dir_writes_one_replay_per_episode(tmp_path: Path):
+    summary = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), record_dir=str(tmp_path)),
+                                 progress=False)
+    (ep,) = summary["episodes"]
+    replay = Path(ep["replay"])
+    assert replay.suffix == ".rrd" and replay.is_file() and replay.stat().st_size > 0
+    assert tmp_path in replay.parents and replay.parent.name == "rectangular-scattered-ep000"
