@@ -24,6 +24,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from parcelpick_env.camera.config import CameraConfig  # noqa: E402
+from parcelpick_env.envs.config import ENV_CUP_RADIUS  # noqa: E402
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv  # noqa: E402
 from parcelpick_env.envs.scripted import top_patch_action  # noqa: E402
 from parcelpick_env.suction.config import SuctionConfig  # noqa: E402
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
 
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     steps_a, cap_a = np.array(steps), np.array(step_capture)
-    cup = args.cup_radius or SuctionConfig().cup_radius
+    cup = args.cup_radius or ENV_CUP_RADIUS  # the env's default cup
     print(f"ParcelPick-v0, {args.parcels} parcels {args.layout} {args.objects}, camera {args.width}x{args.height}, "
           f"N={args.points}, cup r={cup * 1000:.0f} mm, scripted top-patch picker, {args.episodes} episode(s)\n")
     print("| metric | value |")

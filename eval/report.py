@@ -34,7 +34,7 @@ DEFAULT_POLICIES: tuple[str, ...] = ("diffusion", "cao", "normal_std", "dexnet",
 AP_METRICS: tuple[str, ...] = ("AP", "AP0.8", "AP0.4")  # the paper's Table II columns, in its order
 DIFFUSION = "diffusion"
 # How runs/diffusion was trained; ablations reuse it so that each differs from the main model in one flag.
-MAIN_TRAIN_ARGS = "--preset cpu --steps 600 --batch-size 4 --lr 1e-3 --seed 0 --threads 2"
+MAIN_TRAIN_ARGS = "--preset cpu --steps 1500 --batch-size 4 --lr 1e-3 --seed 0 --threads 2 --workers 1"
 
 
 @dataclass(frozen=True)

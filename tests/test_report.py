@@ -140,7 +140,7 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     assert all(row["status"] == "not trained" for row in trained.values())
     assert trained["no_normals"]["command"] == (
         f".venv/bin/python -m policies.diffusion.train --data data/train --out {tmp_path}/ablations/no_normals "
-        "--preset cpu --steps 600 --batch-size 4 --lr 1e-3 --seed 0 --threads 2 --no-normals")
+        "--preset cpu --steps 1500 --batch-size 4 --lr 1e-3 --seed 0 --threads 2 --workers 1 --no-normals")
     assert trained["steps10"]["command"].endswith("--inference-steps 10")
     assert trained["pointnet"]["paper"][0] == 38.39
 
