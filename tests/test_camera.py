@@ -191,3 +191,4 @@ def test_tiny_renderer_matches_egl(box_world):
     assert agree > 0.98
     both = (a.depth > 0) & (b.depth > 0) & (a.segmentation == b.segmentation)
     assert np.median(np.abs(a.depth[both] - b.depth[both])) < 1e-3
+

@@ -287,6 +287,16 @@ def test_annotation_is_deterministic_per_seed(real_dataset):
     _assert_same_scenes({1: annotate_scene(config.scene_seed(1), config)}, {1: open_dataset(root).scene(1)})
 
 
+def test_annotation_survives_another_simulator_closing(real_dataset):
+    """pybullet's EGL state is process-wide: a simulator closed elsewhere must not blank the cached one's renders."""
+    from parcelpick_env.sim.simulator import Simulator
+
+    _, config = real_dataset
+    before = annotate_scene(config.scene_seed(0), config)
+    Simulator().close()
+    _assert_same_scenes({0: before}, {0: annotate_scene(config.scene_seed(0), config)})
+
+
 def test_ray_backend_matches_local(real_dataset, tmp_path):
     pytest.importorskip("ray")
     root, config = real_dataset

@@ -85,6 +85,10 @@ def _asset_geometry(asset: ParcelAsset, max_hull_vertices: int) -> dict:
 
 
 _EGL_BROKEN = False  # set once per process when the plugin cannot be loaded
+# pybullet's EGL plugin keeps process-wide state: when any EGL client of the process disconnects, the
+# other live clients' EGL renders come back empty. Each close starts a new epoch; simulators created in
+# an earlier epoch report ``egl_current`` False.
+_EGL_EPOCH = 0
 
 
 def _load_egl(client: int) -> int:
@@ -118,12 +122,19 @@ class Simulator:
         self._files: dict[int, tuple[ParcelAsset, list[str]]] = {}  # id(asset) -> (asset, OBJ paths)
         self.steps_taken = 0
         self.egl_plugin = _load_egl(self.client) if self.config.egl_rendering else -1
+        self._egl_epoch = _EGL_EPOCH
         self._configure()
 
     @property
     def egl_enabled(self) -> bool:
         """True when OpenGL (EGL) rendering is available to cameras on this client."""
         return self.egl_plugin >= 0
+
+    @property
+    def egl_current(self) -> bool:
+        """False once another EGL simulator of this process has closed: this one's EGL renders are then
+        empty (pybullet limitation, see ``_EGL_EPOCH``), so long-lived caches must make a new simulator."""
+        return self.egl_plugin >= 0 and self._egl_epoch == _EGL_EPOCH
 
     # ----------------------------------------------------------------- world
     def _configure(self) -> None:
@@ -143,9 +154,11 @@ class Simulator:
         self._configure()
 
     def close(self) -> None:
+        global _EGL_EPOCH
         if self.client is not None and self.client >= 0:
             try:
                 if self.egl_plugin >= 0:
+                    _EGL_EPOCH += 1
                     pb.unloadPlugin(self.egl_plugin, physicsClientId=self.client)
                     self.egl_plugin = -1
                 pb.disconnect(physicsClientId=self.client)
