@@ -165,7 +165,7 @@ def _log_policy_extras(env, policy) -> None:
     recorder = getattr(env, "recorder", None)
     trajectory = getattr(policy, "last_trajectory", None)
     if recorder is not None and trajectory is not None and hasattr(recorder, "log_denoising"):
-        recorder.log_denoising(trajectory)
+        recorder.log_denoising(trajectory.points, trajectory.maps)
 
 
 def summarise(results: list[EpisodeResult]) -> dict[str, Any]:

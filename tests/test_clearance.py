@@ -120,3 +120,13 @@ def test_record_dir_writes_one_replay_per_episode(tmp_path: Path):
     replay = Path(ep["replay"])
     assert replay.suffix == ".rrd" and replay.is_file() and replay.stat().st_size > 0
     assert tmp_path in replay.parents and replay.parent.name == "rectangular-scattered-ep000"
+
+
+def test_diffusion_replay_shows_the_denoising_trajectory(tmp_path: Path):
+    """The main job's replay: Diffusion-Suction's first attempt logs its DDIM steps (noise to scores)."""
+    from rerun.chunk import RrdReader
+
+    config = ClearanceConfig(**dict(TINY, policy="diffusion", max_attempts=1), record_dir=str(tmp_path))
+    replay = evaluate_clearance(config, progress=False)["episodes"][0]["replay"]
+    summary = RrdReader(replay).store().summary()
+    assert "/policy/denoising " in summary and "denoise_step" in summary

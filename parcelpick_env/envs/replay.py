@@ -105,13 +105,21 @@ class EpisodeRecorder:
         for name, value in (metrics or {}).items():
             rec.log(f"metrics/{name}", rr.Scalars(float(value)))
 
-    def log_denoising(self, trajectory: Sequence[Any]) -> None:
-        """Optional policy extra: a sequence of per-step score maps (e.g. Diffusion-Suction's DDIM steps)."""
+    def log_denoising(self, points: np.ndarray, maps: np.ndarray) -> None:
+        """Optional policy extra: score maps (steps, M, C) over ``points`` (M, 3) after each denoising step
+        (Diffusion-Suction's DDIM run: noise first, scores last). Each step is the cloud coloured by its
+        channel mean, rescaled per step, on the ``denoise_step`` timeline."""
         rr, rec = self.rr, self.rec
-        for k, scores in enumerate(trajectory):
+        points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        maps = np.asarray(maps, dtype=np.float32)
+        if maps.ndim != 3 or maps.shape[1] != len(points):
+            raise ValueError(f"denoising maps must be (steps, {len(points)}, C), got {maps.shape}")
+        for k, step in enumerate(maps):
+            score = step.mean(axis=1)
+            score = (score - score.min()) / max(float(np.ptp(score)), 1e-6)
+            colours = np.stack([1.0 - score, score, 0.2 * np.ones_like(score)], axis=1)
             rec.set_time("denoise_step", sequence=k)
-            arr = np.asarray(scores, dtype=np.float32)
-            rec.log("policy/denoising", rr.Tensor(arr))
+            rec.log("policy/denoising", rr.Points3D(points, colors=(colours * 255).astype(np.uint8), radii=0.003))
 
     def close(self) -> None:
         self.rec.flush()
