@@ -13,16 +13,15 @@ from __future__ import annotations
 
 import argparse
 import resource
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from timing import time_calls  # noqa: E402  (benchmarks/timing.py)
 
 
 CLOUD_POINTS = 16384  # the observed cloud's size, as in the dataset's stored scenes
@@ -52,16 +51,6 @@ def synthetic_observation(width: int, height: int, seed: int = 0) -> tuple[dict,
     normals = np.tile(np.array([0, 0, 1], dtype=np.float32), (len(points), 1))
     return {"rgb": rgb, "depth": depth[..., None], "points": points, "normals": normals}, \
         {"intrinsics": K, "extrinsics": T}
-
-
-def time_calls(fn, runs: int) -> float:
-    fn()  # warm-up
-    samples = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - start)
-    return statistics.median(samples) * 1e3
 
 
 def main() -> None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import resource
-import statistics
 import sys
 import tempfile
 import time
@@ -27,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from timing import time_calls  # noqa: E402  (benchmarks/timing.py)
 
 
 def pile_observation(width: int, height: int, seed: int = 0) -> tuple[dict, dict]:
@@ -46,16 +46,6 @@ def pile_observation(width: int, height: int, seed: int = 0) -> tuple[dict, dict
         sim.close()
     obs = {"rgb": frame.rgb, "depth": frame.depth[..., None], "points": frame.points, "normals": frame.normals}
     return obs, {"intrinsics": frame.intrinsics, "extrinsics": frame.extrinsics}
-
-
-def time_calls(fn, runs: int) -> float:
-    fn()  # warm-up
-    samples = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - start)
-    return statistics.median(samples) * 1e3
 
 
 def main() -> None:
