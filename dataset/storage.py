@@ -106,14 +106,6 @@ def _validate_record(index: int, record: Mapping[str, np.ndarray]) -> None:
             raise ValueError(f"scene {index}: array {key!r} has unsupported dtype {array.dtype}")
 
 
-def _canonical(array: np.ndarray) -> np.ndarray:
-    """Floats with -0.0 stored as +0.0: BLAS summation order (which follows the thread count, e.g. one
-    thread in Ray workers) decides the sign of an exact zero, and shards must be byte-identical anyway."""
-    if array.dtype.kind == "f":
-        return array + array.dtype.type(0.0)
-    return array
-
-
 def write_shard(
     path: Path,
     shard: int,
@@ -139,7 +131,7 @@ def write_shard(
             group = handle.create_group(SCENE_GROUP.format(index), track_order=True)
             group.attrs["scene_index"] = index
             for key, value in records[index].items():
-                array = _canonical(np.asarray(value))
+                array = np.asarray(value)
                 if _is_string(array):
                     data = np.array([x.decode() if isinstance(x, bytes) else str(x) for x in array.reshape(-1)],
                                     dtype=h5py.string_dtype("utf-8")).reshape(array.shape)
