@@ -19,7 +19,7 @@ setup: $(STAMP)
 
 # The main job: a short closed-loop clearance evaluation of Diffusion-Suction that writes a replay.
 demo: $(STAMP)
-	$(PY) eval/clearance.py --policy diffusion --objects mixed --layout stacked --episodes 1 --parcels 6 \
+	$(PY) eval/clearance.py --policy diffusion --objects mixed --layout scattered --episodes 1 --parcels 6 \
 	  --seed 0 --record runs/demo/replays --out runs/demo/clearance.json
 
 test: $(STAMP)

@@ -140,7 +140,8 @@ def main() -> None:
         train_rows = [bench_train("cpu (w=0.25)", DiffusionConfig.cpu(), 4, args.repeats)]
         if not args.skip_paper:
             train_rows.append(bench_train("paper (w=1.0)", DiffusionConfig(num_points=16384), 1, max(1, args.repeats - 2)))
-        print(f"\n### Training step (forward + backward incl. the 20-step map loss), {args.threads} threads\n")
+        print(f"\n### Training step (forward + backward; the paper preset adds the 20-step sampled-map loss, the CPU "
+              f"preset predicts x0 without it), {args.threads} threads\n")
         print(table(train_rows))
     print(f"\npeak RSS: {peak_mb():.0f} MB")
 

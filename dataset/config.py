@@ -6,12 +6,13 @@ under different settings, and a reader can tell how the labels were made.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from parcelpick_env.config_checks import (config_from_dict, config_to_dict, require, require_choice, require_int,
+                                          require_positive_ints)
 from parcelpick_env.suction.config import SuctionConfig
 
 SPLITS = ("train", "test")
@@ -57,46 +58,36 @@ class GenerationConfig:
     suction: SuctionConfig = field(default_factory=SuctionConfig)
 
     def __post_init__(self) -> None:
-        def need(ok: bool, message: str) -> None:
-            if not ok:
-                raise ValueError(f"GenerationConfig: {message}")
-
-        for name in ("scenes", "seed", "min_parcels", "max_parcels", "annotation_points", "width", "height",
-                     "library_seed", "scenes_per_shard", "compression_level"):
-            value = getattr(self, name)
-            need(isinstance(value, (int, np.integer)) and not isinstance(value, bool),
-                 f"{name} must be an integer, got {value!r}")
-        need(self.scenes >= 1, f"scenes must be >= 1, got {self.scenes}")
-        need(self.seed >= 0, f"seed must be >= 0, got {self.seed}")
-        need(self.split in SPLITS, f"split must be one of {SPLITS}, got {self.split!r}")
-        need(1 <= self.min_parcels <= self.max_parcels <= MAX_PARCELS,
-             f"need 1 <= min_parcels <= max_parcels <= {MAX_PARCELS}, got {self.min_parcels}..{self.max_parcels}")
-        need(self.layout in LAYOUTS + (RANDOM,), f"layout must be one of {LAYOUTS + (RANDOM,)}, got {self.layout!r}")
-        need(self.object_set in OBJECT_SETS + (RANDOM,),
-             f"object_set must be one of {OBJECT_SETS + (RANDOM,)}, got {self.object_set!r}")
-        need(self.annotation_points >= 1, f"annotation_points must be >= 1, got {self.annotation_points}")
-        need(np.isfinite(self.fps_presample) and (self.fps_presample == 0 or self.fps_presample >= 1),
-             f"fps_presample must be 0 (off) or >= 1, got {self.fps_presample}")
-        need(self.width >= 8 and self.height >= 8, f"image must be at least 8x8, got {self.width}x{self.height}")
-        need(self.width * self.height >= self.annotation_points,
-             f"{self.width}x{self.height} image has fewer pixels than annotation_points={self.annotation_points}")
-        need(self.depth_noise_std is None or (np.isfinite(self.depth_noise_std) and self.depth_noise_std >= 0),
-             f"depth_noise_std must be >= 0, got {self.depth_noise_std}")
-        need(self.dropout_prob is None or 0.0 <= self.dropout_prob < 1.0,
-             f"dropout_prob must be in [0, 1), got {self.dropout_prob}")
-        need(self.renderer in (None, "auto", "egl", "tiny"),
-             f"renderer must be None (camera default), 'auto', 'egl' or 'tiny', got {self.renderer!r}")
+        owner = "GenerationConfig"
+        require_positive_ints(self, ("scenes", "annotation_points", "width", "height", "scenes_per_shard"))
+        require_int(owner, "seed", self.seed, lo=0)
+        require_int(owner, "library_seed", self.library_seed, lo=0)
+        require_int(owner, "compression_level", self.compression_level, 0, 9)
+        require_int(owner, "min_parcels", self.min_parcels, 1, MAX_PARCELS)
+        require_int(owner, "max_parcels", self.max_parcels, self.min_parcels, MAX_PARCELS)
+        require_choice(owner, "split", self.split, SPLITS)
+        require_choice(owner, "layout", self.layout, LAYOUTS + (RANDOM,))
+        require_choice(owner, "object_set", self.object_set, OBJECT_SETS + (RANDOM,))
+        require(np.isfinite(self.fps_presample) and (self.fps_presample == 0 or self.fps_presample >= 1), owner,
+                f"fps_presample must be 0 (off) or >= 1, got {self.fps_presample}")
+        require(self.width >= 8 and self.height >= 8, owner,
+                f"image must be at least 8x8, got {self.width}x{self.height}")
+        require(self.width * self.height >= self.annotation_points, owner,
+                f"{self.width}x{self.height} image has fewer pixels than annotation_points={self.annotation_points}")
+        require(self.depth_noise_std is None or (np.isfinite(self.depth_noise_std) and self.depth_noise_std >= 0),
+                owner, f"depth_noise_std must be >= 0, got {self.depth_noise_std}")
+        require(self.dropout_prob is None or 0.0 <= self.dropout_prob < 1.0, owner,
+                f"dropout_prob must be in [0, 1), got {self.dropout_prob}")
+        require_choice(owner, "renderer", self.renderer, (None, "auto", "egl", "tiny"))
         try:
             lo, hi = (float(x) for x in self.rgb_noise_std)
         except (TypeError, ValueError):
             lo, hi = np.nan, np.nan
-        need(np.isfinite(lo) and np.isfinite(hi) and 0.0 <= lo <= hi,
-             f"rgb_noise_std must be a range (min, max) with 0 <= min <= max, got {self.rgb_noise_std!r}")
-        need(self.library_seed >= 0, f"library_seed must be >= 0, got {self.library_seed}")
-        need(self.scenes_per_shard >= 1, f"scenes_per_shard must be >= 1, got {self.scenes_per_shard}")
-        need(self.compression in COMPRESSIONS, f"compression must be one of {COMPRESSIONS}, got {self.compression!r}")
-        need(0 <= self.compression_level <= 9, f"compression_level must be in 0..9, got {self.compression_level}")
-        need(isinstance(self.suction, SuctionConfig), f"suction must be a SuctionConfig, got {type(self.suction)}")
+        require(np.isfinite(lo) and np.isfinite(hi) and 0.0 <= lo <= hi, owner,
+                f"rgb_noise_std must be a range (min, max) with 0 <= min <= max, got {self.rgb_noise_std!r}")
+        require_choice(owner, "compression", self.compression, COMPRESSIONS)
+        require(isinstance(self.suction, SuctionConfig), owner,
+                f"suction must be a SuctionConfig, got {type(self.suction)}")
 
     @property
     def num_shards(self) -> int:
@@ -117,19 +108,9 @@ class GenerationConfig:
         return int(np.random.SeedSequence(entropy).generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
 
     def to_dict(self) -> dict[str, Any]:
-        out = dataclasses.asdict(self)
-        out["rgb_noise_std"] = list(self.rgb_noise_std)
-        return out
+        """JSON-ready, as stored in the manifest (which a resumed run compares against)."""
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> GenerationConfig:
-        data = dict(data)
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"GenerationConfig: unknown keys {sorted(unknown)}")
-        if "suction" in data and isinstance(data["suction"], dict):
-            data["suction"] = SuctionConfig(**data["suction"])
-        if "rgb_noise_std" in data:
-            data["rgb_noise_std"] = tuple(data["rgb_noise_std"])
-        return cls(**data)
+        return config_from_dict(cls, data, nested={"suction": SuctionConfig})

@@ -1,7 +1,7 @@
 """Offline AP of a policy on stored test scenes (SuctionNet protocol plus parcel visibility).
 
     python eval/ap.py --policy normal_std --data data/test --scenes 100 --out results/normal_std_ap.json
-    python -m eval.ap --policy diffusion --data data/test --checkpoint runs/diffusion/model.pt
+    python -m eval.ap --policy diffusion --data data/test --checkpoint runs/diffusion/best.pt
 
 Per scene: the policy sees an observation rebuilt from the stored capture (the labelled cloud, RGB-D
 and calibration; never the labels). Its candidates go through NMS (0.02 m), each is assigned to the

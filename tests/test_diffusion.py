@@ -192,8 +192,13 @@ def test_same_seed_same_prediction(cfg):
     assert not torch.equal(sa, sc)
 
 
-def test_training_learns_to_rank_good_suction_points(cfg):
-    """Overfit one synthetic scene: the top-k precision of the sampled map must clearly beat the untrained model."""
+@pytest.mark.parametrize("objective", [{}, {"prediction": "x0", "map_loss_weight": 0.0}], ids=["eps+map", "x0"])
+def test_training_learns_to_rank_good_suction_points(objective):
+    """Overfit one synthetic scene: the top-k precision of the sampled map must clearly beat the untrained model.
+
+    Both objectives: the public code's (eps plus the sampled-map loss) and the CPU preset's (x0 alone).
+    """
+    cfg = DiffusionConfig.tiny(inference_steps=5, **objective)
     batch = make_batch(cfg)
     quality = batch["labels"].prod(-1)
     model = build_model(cfg, seed=0)
@@ -215,6 +220,18 @@ def test_training_learns_to_rank_good_suction_points(cfg):
     after = ap()
     assert before < 0.3
     assert after > max(0.45, before + 0.25), (before, after)
+
+
+def test_positive_weight_weights_the_loss_by_the_label(cfg):
+    """1 + w * label per point and channel: unlabelled scenes are unaffected, labelled points count more."""
+    plain, weighted = (build_model(DiffusionConfig.tiny(inference_steps=5, prediction="x0", map_loss_weight=0.0,
+                                                        positive_weight=w), seed=0) for w in (0.0, 4.0))
+    batch = make_batch(cfg)
+    empty = {**batch, "labels": torch.zeros_like(batch["labels"])}
+    loss = {name: [float(m.forward_train(b, torch.Generator().manual_seed(1))["loss"].detach())
+                   for m in (plain, weighted)] for name, b in (("labelled", batch), ("empty", empty))}
+    assert loss["empty"][0] == pytest.approx(loss["empty"][1], rel=1e-6)
+    assert loss["labelled"][1] > loss["labelled"][0] * 1.1
 
 
 def test_topk_precision_known_values():

@@ -12,8 +12,8 @@ import pytest
 from eval.clearance import EpisodeResult, summarise
 from eval.metrics import aggregate_ap, scene_ap
 from eval.paper_results import TABLE_II_TOP50, TABLE_V
-from eval.report import (TRAINED_VARIANTS, ReportConfig, differences, evaluate_ablations, evaluate_policy,
-                         main, table_ii, write_report)
+from eval.report import (TRAINED_VARIANTS, ReportConfig, ablation_table, differences, evaluate_ablations,
+                         evaluate_policy, main, table_ii, write_report)
 from policies import registry
 from policies.base import Policy
 
@@ -136,11 +136,12 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     rows = evaluate_ablations(config)
     assert rows[0]["name"] == "infer5" and rows[0]["status"] == "not available" and rows[0]["ap"] is None
     trained = {row["name"]: row for row in rows[1:]}
-    assert set(trained) == {"no_normals", "no_visibility", "pointnet", "steps5", "steps10", "steps15"}
+    assert set(trained) == {"reference", "no_normals", "no_visibility", "pointnet", "steps5", "steps10", "steps15"}
     assert all(row["status"] == "not trained" for row in trained.values())
     assert trained["no_normals"]["command"] == (
         f".venv/bin/python -m policies.diffusion.train --data data/train --out {tmp_path}/ablations/no_normals "
-        "--preset cpu --steps 1500 --batch-size 4 --lr 1e-3 --seed 0 --threads 2 --workers 1 --no-normals")
+        "--preset cpu --steps 1000 --batch-size 4 --lr 1e-3 --seed 0 --threads 1 --workers 0 --no-normals")
+    assert trained["reference"]["command"].endswith("--workers 0")
     assert trained["steps10"]["command"].endswith("--inference-steps 10")
     assert trained["pointnet"]["paper"][0] == 38.39
 
@@ -209,3 +210,21 @@ def test_ablations_evaluate_found_checkpoints_and_reuse_the_main_run(one_scene: 
     assert 0.0 <= rows["infer2"]["ap"]["AP"] <= 100.0
     assert rows["no_visibility"]["status"] == "ok" and rows["no_visibility"]["ap"]["num_scenes"] == 1
     assert rows["no_normals"]["status"] == "not trained" and rows["no_normals"]["ap"] is None
+
+
+def test_step_count_variants_are_the_inference_rows_when_training_never_samples(tmp_path: Path):
+    """With map_loss_weight = 0 a model 'trained with k steps' is the main model: no run to ask for."""
+    from policies.diffusion.checkpoint import save_checkpoint
+    from policies.diffusion.config import DiffusionConfig
+    from policies.diffusion.model import build_model
+
+    main = save_checkpoint(tmp_path / "main.pt", build_model(DiffusionConfig.tiny(inference_steps=5,
+                                                                                  map_loss_weight=0.0)))
+    config = ReportConfig(test_data=str(tmp_path), diffusion_checkpoint=str(main), ablation_dir=str(tmp_path / "a"),
+                          ablation_steps=(5,), progress=False)
+    main_ap = {"AP": 40.0, "AP0.8": 10.0, "AP0.4": 50.0, "top1_AP": 45.0}
+    rows = {row["name"]: row for row in evaluate_ablations(config, main_ap=main_ap)}
+    assert rows["steps5"]["ap"] is main_ap and rows["steps5"]["kind"] == "same_as_inference"
+    assert rows["steps5"]["command"] is None and "map_loss_weight = 0" in rows["steps5"]["reason"]
+    assert rows["steps10"]["status"] == "not trained"  # no inference row at 10 steps to stand in for it
+    assert "map_loss_weight = 0" in ablation_table(list(rows.values()))

@@ -12,16 +12,16 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from parcelpick_env.camera.config import CameraConfig
+from parcelpick_env.config_checks import (require, require_choice, require_int, require_positive_ints,
+                                          require_positive_numbers)
 from parcelpick_env.robot.arm import ArmConfig
+from parcelpick_env.scene.config import check_pile_fields
 from parcelpick_env.scene.scene import BinSpec
 from parcelpick_env.sim.config import SimConfig
 from parcelpick_env.suction.config import SuctionConfig
 
 ACTION_MODES: tuple[str, ...] = ("pose", "pixel")
 ENV_CUP_RADIUS = 0.020  # m; see EnvConfig.suction
-OBJECT_SETS: tuple[str, ...] = ("rectangular", "planar", "cylindrical", "mixed")
-LAYOUTS: tuple[str, ...] = ("stacked", "scattered")
-SPLITS: tuple[str, ...] = ("train", "test")
 
 
 @dataclass(frozen=True)
@@ -50,18 +50,12 @@ class GraspConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.seal_threshold <= 1.0:
             raise ValueError(f"seal_threshold must be in [0, 1], got {self.seal_threshold}")
-        for name in ("vacuum_kpa", "cup_friction", "pregrasp_distance", "overshoot", "approach_speed",
-                     "lift_speed", "clearance", "hover_clearance", "control_dt_free", "trace_interval",
-                     "seal_dwell", "carry_dt", "ready_height"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"GraspConfig.{name} must be a finite number > 0, got {value!r}")
-        if self.carry_dt > 0.05 or self.carry_solver_iterations < 1:
-            raise ValueError("carry_dt must be <= 0.05 s and carry_solver_iterations >= 1")
-        if self.violation_steps < 1:
-            raise ValueError(f"violation_steps must be >= 1, got {self.violation_steps}")
-        if self.max_post_settle_steps < 0:
-            raise ValueError("max_post_settle_steps must be >= 0")
+        require_positive_numbers(self, ("vacuum_kpa", "cup_friction", "pregrasp_distance", "overshoot",
+                                        "approach_speed", "lift_speed", "clearance", "hover_clearance",
+                                        "control_dt_free", "trace_interval", "seal_dwell", "carry_dt", "ready_height"))
+        require(self.carry_dt <= 0.05, "GraspConfig", f"carry_dt must be <= 0.05 s, got {self.carry_dt}")
+        require_positive_ints(self, ("carry_solver_iterations", "violation_steps"))
+        require_int("GraspConfig", "max_post_settle_steps", self.max_post_settle_steps, lo=0)
         if len(self.drop_zone) != 3 or not all(math.isfinite(v) for v in self.drop_zone):
             raise ValueError(f"drop_zone must be 3 finite numbers, got {self.drop_zone}")
 
@@ -102,32 +96,19 @@ class EnvConfig:
     action_margin: float = 0.05  # m: pose actions may lie this far outside the bin's inner box
 
     def __post_init__(self) -> None:
-        if self.object_set not in OBJECT_SETS:
-            raise ValueError(f"object_set must be one of {OBJECT_SETS}, got {self.object_set!r}")
-        if self.layout not in LAYOUTS:
-            raise ValueError(f"layout must be one of {LAYOUTS}, got {self.layout!r}")
-        if self.split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {self.split!r}")
-        if self.action_mode not in ACTION_MODES:
-            raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
-        if isinstance(self.num_parcels, bool) or not isinstance(self.num_parcels, int) or not 1 <= self.num_parcels <= 50:
-            raise ValueError(f"num_parcels must be an int in [1, 50], got {self.num_parcels!r}")
-        if not isinstance(self.num_points, int) or self.num_points < 1:
-            raise ValueError(f"num_points must be a positive int, got {self.num_points!r}")
-        if self.max_attempts is not None and (not isinstance(self.max_attempts, int) or self.max_attempts < 1):
-            raise ValueError(f"max_attempts must be a positive int or None, got {self.max_attempts!r}")
-        if self.max_consecutive_failures < 1:
-            raise ValueError(f"max_consecutive_failures must be >= 1, got {self.max_consecutive_failures}")
-        if self.record_points < 1:
-            raise ValueError("record_points must be >= 1")
-        if not self.action_margin >= 0:
-            raise ValueError("action_margin must be >= 0")
-        for name, cls in (("bin", BinSpec), ("camera", CameraConfig), ("suction", SuctionConfig), ("grasp", GraspConfig),
-                          ("arm", ArmConfig), ("sim", SimConfig)):
-            if not isinstance(getattr(self, name), cls):
-                raise ValueError(f"{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
-        if self.scene_factory is not None and not callable(self.scene_factory):
-            raise ValueError("scene_factory must be callable (sim, seed) -> Scene")
+        owner = "EnvConfig"
+        check_pile_fields(self)
+        require_choice(owner, "action_mode", self.action_mode, ACTION_MODES)
+        require_positive_ints(self, ("num_points", "max_consecutive_failures", "record_points"))
+        if self.max_attempts is not None:
+            require_int(owner, "max_attempts", self.max_attempts, lo=1)
+        require(self.action_margin >= 0, owner, f"action_margin must be >= 0, got {self.action_margin!r}")
+        for name, cls in (("bin", BinSpec), ("camera", CameraConfig), ("suction", SuctionConfig),
+                          ("grasp", GraspConfig), ("arm", ArmConfig), ("sim", SimConfig)):
+            require(isinstance(getattr(self, name), cls), owner,
+                    f"{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
+        require(self.scene_factory is None or callable(self.scene_factory), owner,
+                "scene_factory must be callable (sim, seed) -> Scene")
 
     @property
     def attempt_limit(self) -> int:

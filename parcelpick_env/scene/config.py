@@ -3,12 +3,27 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from parcelpick_env.assets.library import OBJECT_SETS, SPLITS
+from parcelpick_env.config_checks import require_choice, require_int
 from parcelpick_env.scene.scene import BinSpec
 
 LAYOUTS: tuple[str, ...] = ("stacked", "scattered")
 MAX_PARCELS = 50
+
+
+def check_pile_fields(config: Any) -> None:
+    """``num_parcels``, ``layout``, ``object_set`` and ``split`` of any config that describes a pile.
+
+    ``EnvConfig`` calls this too, so a bad value fails when the env is configured rather than at its first
+    reset, and both configs share one set of limits.
+    """
+    owner = type(config).__name__
+    require_int(owner, "num_parcels", config.num_parcels, 1, MAX_PARCELS)
+    require_choice(owner, "layout", config.layout, LAYOUTS)
+    require_choice(owner, "object_set", config.object_set, OBJECT_SETS)
+    require_choice(owner, "split", config.split, SPLITS)
 
 
 @dataclass(frozen=True)
@@ -37,16 +52,7 @@ class PileConfig:
     max_settle_steps: int | None = None  # None: the simulator's SimConfig.max_settle_steps
 
     def __post_init__(self) -> None:
-        if isinstance(self.num_parcels, bool) or not isinstance(self.num_parcels, int):
-            raise ValueError(f"num_parcels must be an int, got {self.num_parcels!r}")
-        if not 1 <= self.num_parcels <= MAX_PARCELS:
-            raise ValueError(f"num_parcels must be in [1, {MAX_PARCELS}], got {self.num_parcels}")
-        if self.layout not in LAYOUTS:
-            raise ValueError(f"layout must be one of {LAYOUTS}, got {self.layout!r}")
-        if self.object_set not in OBJECT_SETS:
-            raise ValueError(f"object_set must be one of {OBJECT_SETS}, got {self.object_set!r}")
-        if self.split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {self.split!r}")
+        check_pile_fields(self)
         if not isinstance(self.bin, BinSpec):
             raise ValueError(f"bin must be a BinSpec, got {type(self.bin).__name__}")
         lo, hi = self.friction_range
@@ -58,9 +64,7 @@ class PileConfig:
             raise ValueError(f"scatter_gap must be in [0, 0.2] m, got {self.scatter_gap}")
         if not 0 <= self.scatter_flat_prob <= 1:
             raise ValueError(f"scatter_flat_prob must be in [0, 1], got {self.scatter_flat_prob}")
-        if self.scatter_attempts < 1:
-            raise ValueError(f"scatter_attempts must be >= 1, got {self.scatter_attempts}")
-        if not 0 <= self.redrop_rounds <= 10:
-            raise ValueError(f"redrop_rounds must be in [0, 10], got {self.redrop_rounds}")
-        if self.max_settle_steps is not None and self.max_settle_steps < 1:
-            raise ValueError(f"max_settle_steps must be >= 1 or None, got {self.max_settle_steps}")
+        require_int("PileConfig", "scatter_attempts", self.scatter_attempts, lo=1)
+        require_int("PileConfig", "redrop_rounds", self.redrop_rounds, 0, 10)
+        if self.max_settle_steps is not None:
+            require_int("PileConfig", "max_settle_steps", self.max_settle_steps, lo=1)

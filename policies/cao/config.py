@@ -6,9 +6,11 @@ pre-processing it was trained with.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Any
+
+from parcelpick_env.config_checks import (config_from_dict, config_to_dict, require, require_int,
+                                          require_positive_ints, require_positive_numbers)
 
 LABEL_CHANNELS = ("seal", "wrench", "collision", "visibility")  # order of the dataset's label columns
 
@@ -52,48 +54,31 @@ class CaoConfig:
     augment_flips: bool = True
 
     def __post_init__(self) -> None:
-        def need(ok: bool, message: str) -> None:
-            if not ok:
-                raise ValueError(f"CaoConfig: {message}")
-
-        need(self.input_height >= 8 and self.input_width >= 8,
-             f"input must be at least 8x8, got {self.input_width}x{self.input_height}")
-        need(len(self.widths) >= 1 and all(isinstance(w, int) and w > 0 for w in self.widths),
-             f"widths must be positive integers, got {self.widths!r}")
+        owner = "CaoConfig"
+        require_int(owner, "input_height", self.input_height, lo=8)
+        require_int(owner, "input_width", self.input_width, lo=8)
+        require(len(self.widths) >= 1 and all(isinstance(w, int) and w > 0 for w in self.widths), owner,
+                f"widths must be positive integers, got {self.widths!r}")
         stride = 2 ** (len(self.widths) - 1)
-        need(self.input_height % stride == 0 and self.input_width % stride == 0,
-             f"input {self.input_width}x{self.input_height} must divide by {stride} for {len(self.widths)} levels")
-        for name in ("depth_scale", "seal_sigma_px", "centre_sigma_scale", "min_centre_sigma_px",
-                     "learning_rate", "nms_radius"):
-            value = getattr(self, name)
-            need(value > 0, f"{name} must be > 0, got {value!r}")
-        need(len(self.seal_channels) >= 1 and set(self.seal_channels) <= set(LABEL_CHANNELS),
-             f"seal_channels must be a non-empty subset of {LABEL_CHANNELS}, got {self.seal_channels!r}")
-        need(self.box_filter >= 1 and self.box_filter % 2 == 1, f"box_filter must be odd >= 1, got {self.box_filter}")
-        need(self.grid_cell >= 1, f"grid_cell must be >= 1, got {self.grid_cell}")
-        need(self.grid_top_k >= 1, f"grid_top_k must be >= 1, got {self.grid_top_k}")
-        need(self.reference_width >= 1, f"reference_width must be >= 1, got {self.reference_width}")
-        need(self.epochs >= 1 and self.batch_size >= 1, f"epochs and batch_size must be >= 1")
-        need(self.weight_decay >= 0, f"weight_decay must be >= 0, got {self.weight_decay}")
-        need(0.0 <= self.val_fraction < 1.0, f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        require(self.input_height % stride == 0 and self.input_width % stride == 0, owner,
+                f"input {self.input_width}x{self.input_height} must divide by {stride} for {len(self.widths)} levels")
+        require_positive_numbers(self, ("depth_scale", "seal_sigma_px", "centre_sigma_scale", "min_centre_sigma_px",
+                                        "learning_rate", "nms_radius"))
+        require(len(self.seal_channels) >= 1 and set(self.seal_channels) <= set(LABEL_CHANNELS), owner,
+                f"seal_channels must be a non-empty subset of {LABEL_CHANNELS}, got {self.seal_channels!r}")
+        require_positive_ints(self, ("box_filter", "grid_cell", "grid_top_k", "reference_width", "epochs",
+                                     "batch_size"))
+        require(self.box_filter % 2 == 1, owner, f"box_filter must be odd, got {self.box_filter}")
+        require(self.weight_decay >= 0, owner, f"weight_decay must be >= 0, got {self.weight_decay}")
+        require(0.0 <= self.val_fraction < 1.0, owner, f"val_fraction must be in [0, 1), got {self.val_fraction}")
 
     @property
     def seal_label_columns(self) -> list[int]:
         return [LABEL_CHANNELS.index(name) for name in self.seal_channels]
 
     def to_dict(self) -> dict[str, Any]:
-        out = dataclasses.asdict(self)
-        out["widths"] = list(self.widths)
-        out["seal_channels"] = list(self.seal_channels)
-        return out
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> CaoConfig:
-        data = dict(data)
-        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ValueError(f"CaoConfig: unknown keys {sorted(unknown)}")
-        for key in ("widths", "seal_channels"):
-            if key in data:
-                data[key] = tuple(data[key])
-        return cls(**data)
+        return config_from_dict(cls, data)

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 
 from policies.base import Candidates, Policy
 from policies.cao.config import CaoConfig
+from policies.checkpoint_io import load_weights, read_checkpoint
 from policies.cao.network import CaoNet, prepare_input
 from policies.heatmap import box_filter, grid_topk, pixels_to_candidates
 from policies.observation import camera, depth_image, point_cloud, rgb_image
@@ -21,21 +22,9 @@ DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoint.pt")
 
 def load_checkpoint(path: str | os.PathLike) -> tuple[CaoNet, dict[str, Any]]:
     """Rebuild the network from a checkpoint written by ``policies.cao.train``; returns (net, checkpoint)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"Cao checkpoint {path} not found; train one with "
-                                f"`python -m policies.cao.train --data DIR --out {path}`")
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for truncated / foreign files
-        raise ValueError(f"Cao checkpoint {path} is corrupt or not a checkpoint: {exc}") from exc
-    if not isinstance(checkpoint, dict) or "config" not in checkpoint or "state_dict" not in checkpoint:
-        raise ValueError(f"Cao checkpoint {path} lacks 'config' / 'state_dict' entries")
-    net = CaoNet(CaoConfig.from_dict(checkpoint["config"]))
-    try:
-        net.load_state_dict(checkpoint["state_dict"])
-    except RuntimeError as exc:
-        raise ValueError(f"Cao checkpoint {path} does not match its config: {exc}") from exc
+    checkpoint = read_checkpoint(path, "Cao", f"python -m policies.cao.train --data DIR --out {path}",
+                                 required=("config", "state_dict"))
+    net = load_weights(CaoNet(CaoConfig.from_dict(checkpoint["config"])), checkpoint["state_dict"], path, "Cao")
     return net.eval(), checkpoint
 
 

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from dataset.storage import open_dataset
 from policies.cao.config import CaoConfig
+from policies.checkpoint_io import save_atomic
 from policies.cao.network import CaoNet, prepare_input
 from policies.cao.targets import frame_from_record, frame_targets
 
@@ -151,11 +152,7 @@ def _train(data_dir: str | os.PathLike, out: str | os.PathLike, config: CaoConfi
         "dataset_config": {k: v for k, v in data_info["dataset_config"].items()
                            if isinstance(v, (int, float, str, bool))},
     }
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    torch.save({"config": config.to_dict(), "state_dict": best_state, "meta": meta}, tmp)
-    os.replace(tmp, out)  # never leave a half-written checkpoint under the final name
+    save_atomic({"config": config.to_dict(), "state_dict": best_state, "meta": meta}, out)
     return meta
 
 

@@ -7,15 +7,12 @@ its network was trained. ``TrainConfig`` holds optimisation settings only.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
-
-def _need(ok: bool, owner: str, message: str) -> None:
-    if not ok:
-        raise ValueError(f"{owner}: {message}")
+from parcelpick_env.config_checks import (config_from_dict, config_to_dict, require, require_int,
+                                          require_positive_ints, require_positive_numbers)
 
 
 @dataclass(frozen=True)
@@ -53,26 +50,20 @@ class DexNetConfig:
 
     def __post_init__(self) -> None:
         owner = "DexNetConfig"
-        for name in ("crop_size", "num_seeds", "num_gmm_samples", "gmm_em_iterations", "fc_width"):
-            value = getattr(self, name)
-            _need(isinstance(value, int) and not isinstance(value, bool) and value >= 1, owner,
-                  f"{name} must be a positive integer, got {value!r}")
-        _need(self.crop_size % 16 == 0, owner, f"crop_size must be a multiple of 16, got {self.crop_size}")
-        _need(isinstance(self.cem_iterations, int) and self.cem_iterations >= 0, owner,
-              f"cem_iterations must be an integer >= 0, got {self.cem_iterations!r}")
-        for name in ("crop_metric_size", "depth_scale", "depth_clip", "visibility_tolerance", "gmm_reg_covar",
-                     "max_snap_distance", "nms_radius", "depth_feature_std"):
-            value = getattr(self, name)
-            _need(math.isfinite(value) and value > 0, owner, f"{name} must be > 0, got {value!r}")
-        _need(0 < self.max_approach_angle_deg <= 90, owner,
-              f"max_approach_angle_deg must be in (0, 90], got {self.max_approach_angle_deg}")
-        _need(0 < self.elite_fraction <= 1, owner, f"elite_fraction must be in (0, 1], got {self.elite_fraction}")
-        _need(0 < self.gmm_component_fraction <= 1, owner,
-              f"gmm_component_fraction must be in (0, 1], got {self.gmm_component_fraction}")
-        _need(len(self.conv_channels) >= 1 and all(isinstance(c, int) and c >= 1 for c in self.conv_channels),
-              owner, f"conv_channels must be positive integers, got {self.conv_channels!r}")
-        _need(self.crop_size % (2 ** len(self.conv_channels)) == 0, owner,
-              f"crop_size {self.crop_size} must be divisible by 2**len(conv_channels)")
+        require_positive_ints(self, ("crop_size", "num_seeds", "num_gmm_samples", "gmm_em_iterations", "fc_width"))
+        require(self.crop_size % 16 == 0, owner, f"crop_size must be a multiple of 16, got {self.crop_size}")
+        require_int(owner, "cem_iterations", self.cem_iterations, lo=0)
+        require_positive_numbers(self, ("crop_metric_size", "depth_scale", "depth_clip", "visibility_tolerance",
+                                        "gmm_reg_covar", "max_snap_distance", "nms_radius", "depth_feature_std"))
+        require(0 < self.max_approach_angle_deg <= 90, owner,
+                f"max_approach_angle_deg must be in (0, 90], got {self.max_approach_angle_deg}")
+        require(0 < self.elite_fraction <= 1, owner, f"elite_fraction must be in (0, 1], got {self.elite_fraction}")
+        require(0 < self.gmm_component_fraction <= 1, owner,
+                f"gmm_component_fraction must be in (0, 1], got {self.gmm_component_fraction}")
+        require(len(self.conv_channels) >= 1 and all(isinstance(c, int) and c >= 1 for c in self.conv_channels),
+                owner, f"conv_channels must be positive integers, got {self.conv_channels!r}")
+        require(self.crop_size % (2 ** len(self.conv_channels)) == 0, owner,
+                f"crop_size {self.crop_size} must be divisible by 2**len(conv_channels)")
 
     @property
     def min_vertical_cos(self) -> float:
@@ -80,18 +71,11 @@ class DexNetConfig:
         return math.cos(math.radians(self.max_approach_angle_deg))
 
     def to_dict(self) -> dict[str, Any]:
-        out = dataclasses.asdict(self)
-        out["conv_channels"] = list(self.conv_channels)
-        return out
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> DexNetConfig:
-        data = dict(data)
-        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
-        _need(not unknown, "DexNetConfig", f"unknown keys {sorted(unknown)}")
-        if "conv_channels" in data:
-            data["conv_channels"] = tuple(data["conv_channels"])
-        return cls(**data)
+        return config_from_dict(cls, data)
 
 
 @dataclass(frozen=True)
@@ -116,15 +100,12 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         owner = "TrainConfig"
-        for name in ("epochs", "batch_size", "samples_per_epoch", "max_points_per_scene"):
-            value = getattr(self, name)
-            _need(isinstance(value, int) and not isinstance(value, bool) and value >= 1, owner,
-                  f"{name} must be a positive integer, got {value!r}")
-        _need(isinstance(self.seed, int) and self.seed >= 0, owner, f"seed must be an integer >= 0, got {self.seed!r}")
-        _need(math.isfinite(self.lr) and self.lr > 0, owner, f"lr must be > 0, got {self.lr!r}")
-        _need(math.isfinite(self.weight_decay) and self.weight_decay >= 0, owner,
-              f"weight_decay must be >= 0, got {self.weight_decay}")
-        _need(0 <= self.val_fraction < 1, owner, f"val_fraction must be in [0, 1), got {self.val_fraction}")
-        _need(0 < self.positive_threshold <= 1, owner,
-              f"positive_threshold must be in (0, 1], got {self.positive_threshold}")
-        _need(isinstance(self.dexnet, DexNetConfig), owner, f"dexnet must be a DexNetConfig, got {type(self.dexnet)}")
+        require_positive_ints(self, ("epochs", "batch_size", "samples_per_epoch", "max_points_per_scene"))
+        require_int(owner, "seed", self.seed, lo=0)
+        require_positive_numbers(self, ("lr",))
+        require(math.isfinite(self.weight_decay) and self.weight_decay >= 0, owner,
+                f"weight_decay must be >= 0, got {self.weight_decay}")
+        require(0 <= self.val_fraction < 1, owner, f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        require(0 < self.positive_threshold <= 1, owner,
+                f"positive_threshold must be in (0, 1], got {self.positive_threshold}")
+        require(isinstance(self.dexnet, DexNetConfig), owner, f"dexnet must be a DexNetConfig, got {type(self.dexnet)}")

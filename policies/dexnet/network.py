@@ -8,6 +8,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from policies.checkpoint_io import load_weights, read_checkpoint, save_atomic
+
 from .config import DexNetConfig
 
 NUM_POSE_FEATURES = 2  # normalised candidate depth, approach tilt from vertical (radians)
@@ -66,28 +68,14 @@ CHECKPOINT_FORMAT = "parcelpick-dexnet-v1"
 
 def save_checkpoint(path: str | Path, model: SuctionQualityNet, metadata: dict[str, Any] | None = None) -> None:
     """Weights plus the DexNetConfig they were trained with, so crops at inference match training."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"format": CHECKPOINT_FORMAT, "config": model.config.to_dict(),
-                "state_dict": model.state_dict(), "metadata": dict(metadata or {})}, path)
+    save_atomic({"format": CHECKPOINT_FORMAT, "config": model.config.to_dict(),
+                 "state_dict": model.state_dict(), "metadata": dict(metadata or {})}, path)
 
 
 def load_checkpoint(path: str | Path) -> tuple[SuctionQualityNet, dict[str, Any]]:
     """The network in eval mode and the checkpoint's metadata; clear errors for missing or corrupt files."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"Dex-Net checkpoint not found: {path} "
-                                f"(train one with `python -m policies.dexnet.train --out {path}`)")
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for truncated or foreign files
-        raise ValueError(f"could not read Dex-Net checkpoint {path}: {exc}") from exc
-    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not a Dex-Net checkpoint (expected format {CHECKPOINT_FORMAT!r})")
-    model = SuctionQualityNet(DexNetConfig.from_dict(blob["config"]))
-    try:
-        model.load_state_dict(blob["state_dict"])
-    except RuntimeError as exc:
-        raise ValueError(f"Dex-Net checkpoint {path} does not match its config: {exc}") from exc
+    blob = read_checkpoint(path, "Dex-Net", f"python -m policies.dexnet.train --out {path}",
+                           format_tag=CHECKPOINT_FORMAT, required=("config", "state_dict"))
+    model = load_weights(SuctionQualityNet(DexNetConfig.from_dict(blob["config"])), blob["state_dict"], path, "Dex-Net")
     model.eval()
     return model, dict(blob.get("metadata", {}))

@@ -4,7 +4,7 @@ denoises per-point [seal, wrench, collision, visibility] scores over a few DDIM 
 - ``config.DiffusionConfig``: every hyper-parameter and ablation switch (``.cpu()`` for 2-core training).
 - ``model.DiffusionSuction``: ``encode`` / ``sample`` / ``forward_train``.
 - ``policy.DiffusionSuctionPolicy``: the ``Policy`` (registry name ``diffusion``).
-- ``train``: ``python -m policies.diffusion.train --data DIR --out runs/diffusion --preset cpu --steps 3000``.
+- ``train``: ``python -m policies.diffusion.train --data DIR --out runs/diffusion --preset cpu --steps 5000``.
 - ``checkpoint``: versioned save/load; the shipped weights live at ``checkpoints/diffusion_suction.pt``.
 """
 

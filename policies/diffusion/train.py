@@ -1,6 +1,6 @@
 """Train Diffusion-Suction.
 
-    python -m policies.diffusion.train --data DIR --out runs/diffusion --preset cpu --steps 3000 --batch-size 4
+    python -m policies.diffusion.train --data DIR --out runs/diffusion --preset cpu --steps 5000 --batch-size 4
 
 Resumable (``--resume`` continues from OUT/last.pt with the same data order and noise), deterministic under --seed.
 """
@@ -70,6 +70,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--schedule", choices=["linear", "cosine"])
     p.add_argument("--prediction", choices=["eps", "x0"])
     p.add_argument("--map-loss-weight", type=float)
+    p.add_argument("--positive-weight", type=float, help="loss weight 1 + w * label per point and channel")
     p.add_argument("--epochs", type=int, default=1)
     p.add_argument("--steps", type=int, help="optimisation steps (overrides --epochs)")
     p.add_argument("--batch-size", type=int, default=4)
@@ -89,7 +90,8 @@ def make_config(args: argparse.Namespace) -> DiffusionConfig:
     overrides = {k: v for k, v in {
         "num_points": args.num_points, "encoder": args.encoder, "width": args.width,
         "train_steps": args.diffusion_steps, "inference_steps": args.inference_steps, "schedule": args.schedule,
-        "prediction": args.prediction, "map_loss_weight": args.map_loss_weight}.items() if v is not None}
+        "prediction": args.prediction, "map_loss_weight": args.map_loss_weight,
+        "positive_weight": args.positive_weight}.items() if v is not None}
     if args.no_normals:
         overrides["use_normals"] = False
     if args.no_visibility:

@@ -18,8 +18,8 @@ from policies.heatmap import pixels_to_candidates
 from policies.observation import camera, depth_image, point_cloud
 from policies.sb3.features import DEFAULT_GRID, depth_features
 
-DEFAULT_MODEL = Path("runs/ppo_pixel.zip")
-TRAIN_COMMAND = "python -m policies.sb3.train --timesteps 2000 --out runs/ppo_pixel.zip --seed 0"
+DEFAULT_MODEL = Path(__file__).with_name("ppo_pixel.zip")  # shipped; made by TRAIN_COMMAND
+TRAIN_COMMAND = "python -m policies.sb3.train --timesteps 2000 --seed 0"
 
 
 class SB3Policy(Policy):

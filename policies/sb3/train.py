@@ -6,23 +6,28 @@ it into a suction point (back-projected depth) and normal (the camera's estimate
 physical pick. Reward is 1 per delivered parcel. Small scenes (3 scattered cartons by default)
 keep a step around a few tenths of a second on 2 CPU cores, so a few thousand steps take minutes:
 
-    python -m policies.sb3.train --timesteps 2000 --out runs/ppo_pixel.zip --seed 0
+    python -m policies.sb3.train --timesteps 2000 --seed 0
 
-Writes the SB3 model zip and prints the mean reward of the first and last 10% of episodes.
+Writes the SB3 model zip (by default the one the ``sb3`` policy ships with) and a JSON beside it with the
+episode rewards, and prints the mean reward of the first and last 10% of episodes.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
+import json
+import time
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+from tqdm import tqdm
 
 import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
 from parcelpick_env.camera.config import CameraConfig
 from policies.sb3.features import DEFAULT_GRID, depth_features
+from policies.sb3.policy import DEFAULT_MODEL
 
 
 class DepthOnly(gym.ObservationWrapper):
@@ -42,6 +47,24 @@ class DepthOnly(gym.ObservationWrapper):
         return depth_features(obs["depth"], self.grid, self.far)
 
 
+class TqdmCallback(BaseCallback):
+    """Progress bar over environment steps (SB3's own bar needs `rich`, which this project does not install)."""
+
+    def __init__(self, total: int) -> None:
+        super().__init__()
+        self.total = total
+
+    def _on_training_start(self) -> None:
+        self.bar = tqdm(total=self.total, desc="PPO", unit="step")
+
+    def _on_step(self) -> bool:
+        self.bar.update(1)
+        return True
+
+    def _on_training_end(self) -> None:
+        self.bar.close()
+
+
 def make_env(seed: int, num_parcels: int = 3, layout: str = "scattered", object_set: str = "rectangular") -> gym.Env:
     env = gym.make("ParcelPick-v0", action_mode="pixel", num_parcels=num_parcels, layout=layout,
                    object_set=object_set, camera=CameraConfig(width=160, height=120), num_points=256,
@@ -54,23 +77,27 @@ def make_env(seed: int, num_parcels: int = 3, layout: str = "scattered", object_
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description="PPO on ParcelPick-v0 (pixel actions, depth-only observations)")
     ap.add_argument("--timesteps", type=int, default=2000)
-    ap.add_argument("--out", default="runs/ppo_pixel.zip")
+    ap.add_argument("--out", default=str(DEFAULT_MODEL), help="model zip (default: the shipped sb3 policy)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--parcels", type=int, default=3)
     ap.add_argument("--layout", default="scattered")
     ap.add_argument("--objects", default="rectangular")
     ap.add_argument("--n-steps", type=int, default=128, help="PPO rollout length")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (the env, not the MLP, is the cost)")
     args = ap.parse_args(argv)
+    if args.timesteps < 1 or args.n_steps < 2 or args.threads < 1:
+        ap.error("--timesteps must be >= 1, --n-steps >= 2 and --threads >= 1")
 
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.monitor import Monitor
 
-    torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+    torch.set_num_threads(args.threads)
     env = Monitor(make_env(args.seed, args.parcels, args.layout, args.objects))
     model = PPO("MlpPolicy", env, n_steps=args.n_steps, batch_size=min(64, args.n_steps), n_epochs=4,
                 learning_rate=3e-4, gamma=0.9, seed=args.seed, verbose=0, device="cpu")
-    model.learn(total_timesteps=args.timesteps)
+    started = time.perf_counter()
+    model.learn(total_timesteps=args.timesteps, callback=TqdmCallback(args.timesteps))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     model.save(out)
@@ -78,6 +105,10 @@ def main(argv: list[str] | None = None) -> None:
     tenth = max(1, len(rewards) // 10)
     first = rewards[:tenth].mean() if len(rewards) else float("nan")
     last = rewards[-tenth:].mean() if len(rewards) else float("nan")
+    log = {"command_args": vars(args), "timesteps": args.timesteps, "seconds": time.perf_counter() - started,
+           "episode_rewards": rewards.tolist(), "episode_lengths": list(map(int, env.get_episode_lengths())),
+           "first_tenth_mean_reward": first, "last_tenth_mean_reward": last}
+    out.with_suffix(".json").write_text(json.dumps(log, indent=1))
     print(f"episodes {len(rewards)}, timesteps {args.timesteps}: mean episode reward first 10% {first:.2f}, "
           f"last 10% {last:.2f} -> {out}")
     env.close()
