@@ -65,6 +65,25 @@ def pixels_to_world(rows: np.ndarray, cols: np.ndarray, depth: np.ndarray, intri
     return cam @ T[:3, :3].T + T[:3, 3]
 
 
+def workspace_pixels(depth: np.ndarray, intrinsics: np.ndarray, extrinsics: np.ndarray,
+                     workspace: np.ndarray | None) -> np.ndarray:
+    """(H, W) bool: pixels with depth whose world point lies in the box ``workspace`` ((2, 3): min, max corner).
+
+    An image-space policy also sees the bin's walls and rim and the floor around the bin; the env refuses picks
+    outside the bin (``info['workspace']``), so those pixels must never become candidates. ``None``: every pixel
+    with depth.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(depth) & (depth > 0)
+    if workspace is None:
+        return valid
+    lo, hi = np.asarray(workspace, dtype=np.float64).reshape(2, 3)
+    rows, cols = np.nonzero(valid)
+    points = pixels_to_world(rows, cols, depth, intrinsics, extrinsics)
+    valid[rows, cols] = np.all((points >= lo) & (points <= hi), axis=1)
+    return valid
+
+
 def depth_normals(rows: np.ndarray, cols: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
                   extrinsics: np.ndarray, radius: float = NORMAL_RADIUS) -> np.ndarray:
     """World-frame normals at pixels from central differences of the unprojected depth.

@@ -249,6 +249,19 @@ def test_policy_returns_ranked_candidates_and_valid_action(trained):
     assert np.allclose(action[:3], candidates.points[0]) and action[5] > 0.99  # normals face up, to the camera
 
 
+def test_policy_keeps_candidates_inside_the_workspace(trained):
+    """Pixels outside info['workspace'] (bin walls, rim, the floor around the bin) never become candidates."""
+    path, _ = trained
+    policy = CaoPolicy(checkpoint=path, threads=1)
+    obs, info = observation(synthetic_record(42))
+    everywhere = policy.predict(obs, info, top_k=50).points
+    cut = float(np.median(everywhere[:, 0]))  # a box holding about half of the unrestricted candidates
+    box = np.array([[cut, -10.0, -10.0], [10.0, 10.0, 10.0]])
+    inside = policy.predict(obs, {**info, "workspace": box}, top_k=50)
+    assert len(inside) >= 1 and np.all(inside.points[:, 0] >= cut - 1e-9)
+    assert np.any(everywhere[:, 0] < cut)  # the restriction removed something
+
+
 def test_trained_heatmaps_separate_parcels_from_floor(trained):
     """A few epochs on boxes already light up parcels: an untrained net's maps are flat (~0.43 vs ~0.43)."""
     path, _ = trained

@@ -14,7 +14,7 @@ from policies.base import Candidates, Policy
 from policies.cao.config import CaoConfig
 from policies.checkpoint_io import load_weights, read_checkpoint
 from policies.cao.network import CaoNet, prepare_input
-from policies.heatmap import box_filter, grid_topk, pixels_to_candidates
+from policies.heatmap import box_filter, grid_topk, pixels_to_candidates, workspace_pixels
 from policies.observation import camera, depth_image, point_cloud, rgb_image
 
 DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoint.pt")
@@ -43,7 +43,8 @@ class CaoPolicy(Policy):
     """Per-pixel seal and object-centre heatmaps from RGB-D; their product ranks suction points.
 
     ``checkpoint=None`` loads the checkpoint shipped next to this file. Extraction follows SuctionNet:
-    a box filter, the best pixel per grid cell, the top ``grid_top_k`` cells, then NMS and top-k.
+    a box filter, the best pixel per grid cell, the top ``grid_top_k`` cells, then NMS and top-k. Pixels outside
+    ``info['workspace']`` (when given: the env's bin) are never candidates.
     ``threads``: torch CPU threads for the forward pass (restored afterwards; None keeps torch's
     setting). One is the default: this small net gains little from more, and on a shared, busy CPU
     OpenMP barriers made two threads 7x to 70x slower than one in our measurements.
@@ -94,7 +95,8 @@ class CaoPolicy(Policy):
         rgb, depth, K, T = _observation(obs, info)
         seal, centre = self._heatmaps(rgb, depth)
         box, cell = self._extraction_sizes(depth.shape[1])
-        score = box_filter(seal * centre, box, valid=depth > 0)
+        workspace = info.get("workspace") if info is not None else None
+        score = box_filter(seal * centre, box, valid=workspace_pixels(depth, K, T, workspace))
         rows, cols, scores = grid_topk(score, cell=cell, top_k=self.config.grid_top_k)
         points = normals = None
         if "points" in obs and "normals" in obs:
