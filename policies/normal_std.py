@@ -30,7 +30,7 @@ from scipy.ndimage import uniform_filter
 
 from policies.base import Candidates, Policy
 from policies.heatmap import box_filter, grid_topk, pixels_to_world
-from policies.observation import camera, depth_image
+from policies.observation import camera, check_workspace, depth_image, workspace
 from policies.postprocess import select_candidates
 
 if TYPE_CHECKING:
@@ -72,10 +72,7 @@ class NormalStdConfig:
         if not self.nms_radius >= 0:
             raise ValueError(f"NormalStdConfig.nms_radius must be >= 0, got {self.nms_radius!r}")
         if self.workspace is not None:
-            box = np.asarray(self.workspace, dtype=np.float64)
-            if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
-                raise ValueError(f"NormalStdConfig.workspace must be ((xmin, ymin, zmin), (xmax, ymax, zmax)) with "
-                                 f"min < max, got {self.workspace!r}")
+            check_workspace(self.workspace, "NormalStdConfig")
 
     @classmethod
     def for_bin(cls, spec: "BinSpec", **kwargs: Any) -> "NormalStdConfig":
@@ -177,9 +174,7 @@ class NormalStdPolicy(Policy):
         if top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {top_k}")
         fmap = self.flatness(obs, info)
-        box = self.config.workspace
-        if box is None and info is not None and info.get("workspace") is not None:
-            box = np.asarray(info["workspace"], dtype=np.float64).reshape(2, 3)
+        box = self.config.workspace if self.config.workspace is not None else workspace(info, "Normal-STD")
         heat = np.where(_workspace(fmap, obs, box, self.config.floor_clearance), fmap.heat, -np.inf)
         rows, cols, scores = grid_topk(heat, self.config.effective_cell, self.config.max_candidates)
         return select_candidates(fmap.points[rows, cols], fmap.normals[rows, cols], scores, top_k=top_k,

@@ -34,6 +34,22 @@ def camera(info: Mapping[str, Any] | None, who: str) -> tuple[np.ndarray, np.nda
     return check_camera(info["intrinsics"], info["extrinsics"])
 
 
+def check_workspace(box: Any, who: str) -> np.ndarray:
+    """Validated float64 world box (2, 3): min corner, then max corner, finite, min < max on every axis."""
+    out = np.asarray(box, dtype=np.float64)
+    if out.shape != (2, 3) or not np.all(np.isfinite(out)) or np.any(out[0] >= out[1]):
+        raise ValueError(f"{who}: workspace must be ((xmin, ymin, zmin), (xmax, ymax, zmax)) with min < max, "
+                         f"got {box!r}")
+    return out
+
+
+def workspace(info: Mapping[str, Any] | None, who: str) -> np.ndarray | None:
+    """The bin box the env puts in ``info['workspace']``, validated; None when the caller gives none."""
+    if info is None or info.get("workspace") is None:
+        return None
+    return check_workspace(info["workspace"], who)
+
+
 def depth_image(obs: Mapping[str, Any], who: str, require_returns: bool = True) -> np.ndarray:
     """``obs['depth']`` as float32 (H, W): finite, non-negative, 0 where the sensor returned nothing."""
     if "depth" not in obs:

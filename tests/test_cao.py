@@ -260,6 +260,8 @@ def test_policy_keeps_candidates_inside_the_workspace(trained):
     inside = policy.predict(obs, {**info, "workspace": box}, top_k=50)
     assert len(inside) >= 1 and np.all(inside.points[:, 0] >= cut - 1e-9)
     assert np.any(everywhere[:, 0] < cut)  # the restriction removed something
+    with pytest.raises(ValueError, match="workspace"):  # an empty box is a malformed observation, not 0 candidates
+        policy.predict(obs, {**info, "workspace": [[0.0, 0.0, 0.0], [0.0, 1.0, 1.0]]})
 
 
 def test_trained_heatmaps_separate_parcels_from_floor(trained):

@@ -15,7 +15,7 @@ from policies.cao.config import CaoConfig
 from policies.checkpoint_io import load_weights, read_checkpoint
 from policies.cao.network import CaoNet, prepare_input
 from policies.heatmap import box_filter, grid_topk, pixels_to_candidates, workspace_pixels
-from policies.observation import camera, depth_image, point_cloud, rgb_image
+from policies.observation import camera, depth_image, point_cloud, rgb_image, workspace
 
 DEFAULT_CHECKPOINT = Path(__file__).with_name("checkpoint.pt")
 
@@ -95,8 +95,7 @@ class CaoPolicy(Policy):
         rgb, depth, K, T = _observation(obs, info)
         seal, centre = self._heatmaps(rgb, depth)
         box, cell = self._extraction_sizes(depth.shape[1])
-        workspace = info.get("workspace") if info is not None else None
-        score = box_filter(seal * centre, box, valid=workspace_pixels(depth, K, T, workspace))
+        score = box_filter(seal * centre, box, valid=workspace_pixels(depth, K, T, workspace(info, "Cao policy")))
         rows, cols, scores = grid_topk(score, cell=cell, top_k=self.config.grid_top_k)
         points = normals = None
         if "points" in obs and "normals" in obs:

@@ -20,7 +20,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from policies.base import Candidates, Policy
-from policies.observation import camera, depth_image, point_cloud
+from policies.observation import camera, check_workspace, depth_image, point_cloud
 from policies.postprocess import select_candidates
 
 from .cem import fit_gmm
@@ -77,13 +77,7 @@ class DexNetPolicy(Policy):
         if unknown:
             raise ValueError(f"DexNetPolicy: unknown or fixed-by-checkpoint settings {sorted(unknown)}; "
                              f"adjustable: {SEARCH_FIELDS}")
-        self.workspace = None
-        if workspace is not None:
-            box = np.asarray(workspace, dtype=np.float64)
-            if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
-                raise ValueError(f"workspace must be ((xmin, ymin, zmin), (xmax, ymax, zmax)) with min < max, "
-                                 f"got {workspace!r}")
-            self.workspace = box
+        self.workspace = None if workspace is None else check_workspace(workspace, "DexNetPolicy")
         self.checkpoint = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.model, self.metadata = load_checkpoint(self.checkpoint)
         # Crop and network fields come from the checkpoint; search fields from today's defaults, then overrides.
