@@ -1,5 +1,5 @@
-"""Diffusion-Suction speed and memory on CPU: neighbourhood precompute, encoder (once), decoder x DDIM steps,
-end-to-end policy.predict, and a training step. Prints a markdown table.
+"""Diffusion-Suction speed and memory on CPU: input precompute (neighbourhoods, segment levers), encoder (once),
+decoder x DDIM steps, end-to-end policy.predict, and a training step. Prints a markdown table.
 
     .venv/bin/python benchmarks/bench_diffusion.py [--threads 2] [--sizes 4096 8192 16384] [--repeats 3]
 """
@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from policies.diffusion.config import DiffusionConfig  # noqa: E402
 from policies.diffusion.model import build_model  # noqa: E402
-from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods  # noqa: E402
+from policies.diffusion.neighbourhood import NeighbourhoodTransform, model_inputs  # noqa: E402
 from policies.diffusion.policy import DiffusionSuctionPolicy  # noqa: E402
 from policies.diffusion.synthetic import synthetic_scene  # noqa: E402
 
@@ -48,7 +48,7 @@ def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decod
     scene = synthetic_scene(np.random.default_rng(0), n)
     model = build_model(cfg).eval()
     nb = {}
-    t_nb = timed(lambda: nb.update(compute_neighbourhoods(scene["points"], cfg)), repeats)
+    t_nb = timed(lambda: nb.update(model_inputs(scene["points"], scene["normals"], cfg)), repeats)
     batch = {k: torch.from_numpy(np.asarray(v)).unsqueeze(0) for k, v in {**scene, **nb}.items()}
     with torch.inference_mode():
         feats = model.encode(batch)
@@ -61,7 +61,7 @@ def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decod
     fast = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=decode_points)
     t_pol = timed(lambda: full.predict(obs), repeats)
     t_fast = timed(lambda: fast.predict(obs), repeats)
-    return {"config": name, "N": n, "neighbourhoods": t_nb, "encoder": t_enc,
+    return {"config": name, "N": n, "precompute": t_nb, "encoder": t_enc,
             f"decoder x{cfg.inference_steps} (N)": t_dec, f"decoder x{cfg.inference_steps} ({decode_points} pts)": t_sub,
             "predict (decode N)": t_pol, f"predict (decode {decode_points})": t_fast, "peak RSS MB": peak_mb()}
 
@@ -116,6 +116,7 @@ def main() -> None:
     p.add_argument("--sizes", type=int, nargs="+", default=[4096, 8192, 16384])
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--decode-points", type=int, default=2048)
+    p.add_argument("--steps", type=int, default=20, help="DDIM steps in the first table (issue #5's goal is at 20)")
     p.add_argument("--skip-train", action="store_true")
     p.add_argument("--skip-paper", action="store_true", help="only the CPU preset")
     p.add_argument("--cpu-time", action="store_true", help="report process CPU time instead of wall time")
@@ -124,17 +125,19 @@ def main() -> None:
     if args.cpu_time:
         CLOCK = time.process_time
     torch.set_num_threads(args.threads)
-    configs = {"cpu (w=0.25)": lambda n: DiffusionConfig.cpu(num_points=n,
-                                                             sa_npoints=tuple(n // d for d in (4, 16, 64, 256)))}
+    def sized(n: int) -> dict:
+        return dict(num_points=n, sa_npoints=tuple(n // d for d in (4, 16, 64, 256)), inference_steps=args.steps)
+
+    configs = {"cpu (w=0.25)": lambda n: DiffusionConfig.cpu(**sized(n))}
     if not args.skip_paper:
-        configs["paper (w=1.0)"] = lambda n: DiffusionConfig(num_points=n,
-                                                              sa_npoints=tuple(n // d for d in (4, 16, 64, 256)))
+        configs["paper (w=1.0)"] = lambda n: DiffusionConfig(**sized(n))
     rows = [bench_inference(name, make(n), n, args.repeats, args.decode_points)
             for name, make in configs.items() for n in args.sizes]
     print(f"### Diffusion-Suction inference, B=1, {args.threads} torch threads, {'CPU' if args.cpu_time else 'wall'} times in ms (median of {args.repeats})\n")
     print(table(rows))
     deploy = [bench_deploy(DiffusionConfig.cpu(), n, args.repeats) for n in args.sizes]
-    print(f"\n### Policy.predict with the CPU preset model (input subsampled to 4096), {args.threads} threads\n")
+    print(f"\n### Policy.predict with the CPU preset model (input subsampled to 4096, "
+          f"{DiffusionConfig.cpu().inference_steps} DDIM steps), {args.threads} threads\n")
     print(table(deploy))
     if not args.skip_train:
         train_rows = [bench_train("cpu (w=0.25)", DiffusionConfig.cpu(), 4, args.repeats)]

@@ -39,7 +39,8 @@ from policies.base import Candidates, Policy  # noqa: E402
 from policies.postprocess import select_candidates  # noqa: E402
 
 # What the evaluator reads from each stored scene (dataset/annotate.py writes them).
-OBSERVATION_KEYS = ("points", "normals", "rgb", "depth", "intrinsics", "extrinsics")
+# The bin is the cell's known geometry, as in the env's info['workspace'], not ground truth about the pile.
+OBSERVATION_KEYS = ("points", "normals", "rgb", "depth", "intrinsics", "extrinsics", "bin_spec")
 GROUND_TRUTH_KEYS = ("object_asset_ids", "object_categories", "object_poses", "bin_spec", "library_seed")
 
 
@@ -88,16 +89,22 @@ def scene_from_record(record: Record, library: AssetLibrary | None = None) -> Sc
     parcels = [ParcelState(object_id=k, body_id=-1, asset=library.get(str(asset_id)), position=pose[:3],
                            orientation=pose[3:], friction=float("nan"))
                for k, (asset_id, pose) in enumerate(zip(asset_ids, poses))]
-    bin_fields = json.loads(str(record["bin_spec"]))
-    bin_spec = BinSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in bin_fields.items()})
-    return Scene(parcels=parcels, bin=bin_spec, seed=int(record.get("scene_seed", -1)),
+    return Scene(parcels=parcels, bin=bin_from_record(record), seed=int(record.get("scene_seed", -1)),
                  layout=str(record.get("layout", "")), object_set=str(record.get("object_set", "")),
                  split=str(record.get("split", "")))
 
 
+def bin_from_record(record: Record) -> BinSpec:
+    bin_fields = json.loads(str(record["bin_spec"]))
+    return BinSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in bin_fields.items()})
+
+
 def observation_from_record(record: Record, num_points: int | None, rng: np.random.Generator
                             ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """The env-style (obs, info) of a stored capture; the cloud is resampled to ``num_points``."""
+    """The env-style (obs, info) of a stored capture; the cloud is resampled to ``num_points``.
+
+    ``info`` holds what the env gives policies: the camera, and the bin as ``workspace``.
+    """
     _require(record, OBSERVATION_KEYS, "scene record")
     points = np.asarray(record["points"], dtype=np.float32)
     normals = np.asarray(record["normals"], dtype=np.float32)
@@ -108,7 +115,8 @@ def observation_from_record(record: Record, num_points: int | None, rng: np.rand
     obs = {"points": points, "normals": normals, "rgb": np.asarray(record["rgb"], dtype=np.uint8),
            "depth": depth[..., None] if depth.ndim == 2 else depth}
     info = {"intrinsics": np.asarray(record["intrinsics"], dtype=np.float64),
-            "extrinsics": np.asarray(record["extrinsics"], dtype=np.float64)}
+            "extrinsics": np.asarray(record["extrinsics"], dtype=np.float64),
+            "workspace": bin_from_record(record).workspace()}
     return obs, info
 
 

@@ -61,6 +61,8 @@ class TrainedVariant:
 TRAINED_VARIANTS: tuple[TrainedVariant, ...] = (
     TrainedVariant("reference", "reference: the main settings at the ablation budget", (),
                    TABLE_III_ABLATION["full"]),
+    TrainedVariant("no_segment_levers", "w/o surface-segment lever arms (not in the paper)", ("--no-segment-levers",),
+                   None),
     TrainedVariant("no_normals", "w/o normals", ("--no-normals",), TABLE_III_ABLATION["no_normals"]),
     TrainedVariant("no_visibility", "w/o visibility", ("--no-visibility",), TABLE_III_ABLATION["no_visibility"]),
     TrainedVariant("pointnet", "PointNet encoder", ("--encoder", "pointnet"), TABLE_III_ABLATION["pointnet"]),

@@ -15,7 +15,7 @@ import open3d as o3d
 import pytest
 
 from dataset.storage import shard_name, write_manifest, write_shard
-from eval.ap import APConfig, evaluate_ap, main, scene_from_record
+from eval.ap import APConfig, evaluate_ap, main, observation_from_record, scene_from_record
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.scene.scene import BinSpec
 from policies.base import Candidates, Policy
@@ -112,6 +112,17 @@ def test_oracle_scores_what_the_protocol_allows_and_bad_picks_score_zero(dataset
     floor = np.array([[0.3, -0.2, 0.0], [-0.3, 0.2, 0.0], [0.0, -0.2, 0.0]])
     assert evaluate_ap(_FixedPolicy(floor, np.tile([0, 0, 1.0], (3, 1))), dataset_dir)["AP"] == 0.0
     assert evaluate_ap(_FixedPolicy(tops, np.tile([1.0, 0, 0], (2, 1))), dataset_dir)["AP"] == 0.0
+
+
+def test_policies_see_the_bin_as_their_workspace_like_in_the_env():
+    record = _record()
+    obs, info = observation_from_record(record, 100, np.random.default_rng(0))
+    assert obs["points"].shape == (100, 3)
+    np.testing.assert_allclose(info["workspace"], scene_from_record(record).bin.workspace())
+    assert "object_poses" not in info  # the pile itself stays hidden
+    del record["bin_spec"]
+    with pytest.raises(ValueError, match="bin_spec"):
+        observation_from_record(record, None, np.random.default_rng(0))
 
 
 @pytest.mark.parametrize("policy", [RandomPolicy(seed=0), NormalStdPolicy()], ids=["random", "normal_std"])

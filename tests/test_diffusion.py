@@ -15,7 +15,7 @@ from policies.base import Candidates
 from policies.diffusion.checkpoint import load_checkpoint, load_model, save_checkpoint
 from policies.diffusion.config import DiffusionConfig
 from policies.diffusion.metrics import topk_precision
-from policies.diffusion.model import build_model
+from policies.diffusion.model import LEVER_UNIT, build_model
 from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods, grid_sample
 from policies.diffusion.pointnet2 import fold_batchnorm
 from policies.diffusion.policy import DiffusionSuctionPolicy
@@ -170,8 +170,27 @@ def test_ablation_configs_build_and_run():
             assert model.eval().sample(model.encode(batch)).shape == (1, N, cfg.num_channels)
 
 
+def test_segment_levers_condition_the_decoder_in_training_and_in_the_policy():
+    cfg = DiffusionConfig.tiny(inference_steps=2, prediction="x0", map_loss_weight=0.0, segment_levers=True)
+    batch = make_batch(cfg)
+    levers = batch["surface_levers"]
+    assert levers.shape == (1, N, 4) and float(levers[..., 3].max()) > 0.01  # box tops have real lever arms
+    model = build_model(cfg)
+    assert model.decoder.cond[0].in_channels == cfg.feature_dim + 4
+    with torch.inference_mode():
+        feats = model.eval().encode(batch)
+    assert feats.shape == (1, N, cfg.feature_dim + 4)
+    assert torch.allclose(feats[..., -4:], levers / LEVER_UNIT)
+    assert torch.isfinite(model.train().forward_train(batch)["loss"])
+    with pytest.raises(KeyError, match="surface_levers"):
+        model.encode({k: v for k, v in batch.items() if k != "surface_levers"})
+    candidates = DiffusionSuctionPolicy(model=model, seed=0).predict(obs_from(), top_k=5)
+    assert len(candidates.points) == 5
+
+
 def test_config_validation():
     for bad in ({"num_points": 0}, {"encoder": "dgcnn"}, {"schedule": "sqrt"}, {"scale": -1},
+                {"segment_radius": 0.0}, {"segment_min_cos": 1.5},
                 {"inference_steps": 2000}, {"sa_npoints": (600, 32, 16, 8)}, {"sa_radii": ((-0.01, 0.02, 0.03),) * 4}):
         with pytest.raises(ValueError):
             DiffusionConfig.tiny(**bad)
@@ -192,7 +211,9 @@ def test_same_seed_same_prediction(cfg):
     assert not torch.equal(sa, sc)
 
 
-@pytest.mark.parametrize("objective", [{}, {"prediction": "x0", "map_loss_weight": 0.0}], ids=["eps+map", "x0"])
+@pytest.mark.parametrize("objective", [{}, {"prediction": "x0", "map_loss_weight": 0.0},
+                                       {"prediction": "x0", "map_loss_weight": 0.0, "segment_levers": True}],
+                         ids=["eps+map", "x0", "x0+levers"])
 def test_training_learns_to_rank_good_suction_points(objective):
     """Overfit one synthetic scene: the top-k precision of the sampled map must clearly beat the untrained model.
 
@@ -212,7 +233,7 @@ def test_training_learns_to_rank_good_suction_points(objective):
 
     before = ap()
     opt = torch.optim.Adam(model.parameters(), lr=2e-3)
-    for i in range(60):
+    for i in range(100):
         loss = model.forward_train(batch, torch.Generator().manual_seed(i))["loss"]
         opt.zero_grad()
         loss.backward()

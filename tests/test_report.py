@@ -45,7 +45,7 @@ def _entry(name: str, label: str, ap=None, clearance=None, status="ok", reason=N
 def report(tmp_path: Path) -> dict:
     config = ReportConfig(test_data=str(tmp_path), objects=("rectangular",), layouts=("scattered",),
                           out=str(tmp_path / "RESULTS.md"))
-    missing = [{"name": v.name, "kind": "trained", "description": v.description, "paper": list(v.paper),
+    missing = [{"name": v.name, "kind": "trained", "description": v.description, "paper": list(v.paper) if v.paper else None,
                 "checkpoint": f"runs/ablations/{v.name}/best.pt", "command": f"train {' '.join(v.train_flags)}",
                 "ap": None, "reason": None, "status": "not trained"} for v in TRAINED_VARIANTS]
     steps = {"name": "infer5", "kind": "inference_steps", "description": "main checkpoint, sampled with 5 DDIM steps",
@@ -136,7 +136,8 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     rows = evaluate_ablations(config)
     assert rows[0]["name"] == "infer5" and rows[0]["status"] == "not available" and rows[0]["ap"] is None
     trained = {row["name"]: row for row in rows[1:]}
-    assert set(trained) == {"reference", "no_normals", "no_visibility", "pointnet", "steps5", "steps10", "steps15"}
+    assert set(trained) == {"reference", "no_segment_levers", "no_normals", "no_visibility", "pointnet", "steps5",
+                            "steps10", "steps15"}
     assert all(row["status"] == "not trained" for row in trained.values())
     assert trained["no_normals"]["command"] == (
         f".venv/bin/python -m policies.diffusion.train --data data/train --out {tmp_path}/ablations/no_normals "
@@ -144,6 +145,8 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     assert trained["reference"]["command"].endswith("--workers 0")
     assert trained["steps10"]["command"].endswith("--inference-steps 10")
     assert trained["pointnet"]["paper"][0] == 38.39
+    assert trained["no_segment_levers"]["command"].endswith("--no-segment-levers")
+    assert trained["no_segment_levers"]["paper"] is None  # not in the paper
 
 
 @pytest.mark.parametrize("bad", [dict(policies=()), dict(episodes=0), dict(parcels=0), dict(ap_scenes=0),

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from policies.diffusion.config import DiffusionConfig
+from policies.surface_segments import surface_levers
 
 
 def grid_sample(points: np.ndarray, count: int) -> np.ndarray:
@@ -122,9 +123,21 @@ def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers:
     return out
 
 
+def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfig, workers: int = 1
+                 ) -> dict[str, np.ndarray]:
+    """Everything the model needs precomputed for one cloud: the neighbourhoods (PointNet++ encoder) and the
+    surface-segment lever arms (``config.segment_levers``)."""
+    out: dict[str, np.ndarray] = {}
+    if config.encoder == "pointnet2":
+        out.update(compute_neighbourhoods(points, config, workers))
+    if config.segment_levers:
+        out["surface_levers"] = surface_levers(points, normals, config.segment_radius, config.segment_min_cos)
+    return out
+
+
 class NeighbourhoodTransform:
-    """Dataset transform: adds the neighbourhood arrays to a sample dict (needs 'points'). Batches with the default
-    collate when every cloud in the batch has the same number of points."""
+    """Dataset transform: adds :func:`model_inputs` to a sample dict (needs 'points' and 'normals'). Batches with the
+    default collate when every cloud in the batch has the same number of points."""
 
     def __init__(self, config: DiffusionConfig, inner: Any = None):
         self.config = config
@@ -132,6 +145,5 @@ class NeighbourhoodTransform:
 
     def __call__(self, sample: Mapping[str, Any]) -> dict[str, Any]:
         sample = dict(self.inner(sample) if self.inner is not None else sample)
-        if self.config.encoder == "pointnet2":
-            sample.update(compute_neighbourhoods(np.asarray(sample["points"]), self.config))
+        sample.update(model_inputs(np.asarray(sample["points"]), np.asarray(sample["normals"]), self.config))
         return sample

@@ -15,7 +15,7 @@ from policies.base import Candidates, Policy
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
 from policies.diffusion.model import DiffusionSuction
 from policies.diffusion.pointnet2 import fold_batchnorm
-from policies.diffusion.neighbourhood import compute_neighbourhoods, grid_sample, sample_indices
+from policies.diffusion.neighbourhood import grid_sample, model_inputs, sample_indices
 from policies.observation import point_cloud
 from policies.postprocess import NMS_RADIUS, select_candidates
 
@@ -80,9 +80,8 @@ class DiffusionSuctionPolicy(Policy):
         if len(points) > cfg.num_points:
             keep = sample_indices(points, cfg.num_points, cfg.sampler)
             points, normals = points[keep], normals[keep]
-        batch = {"points": points, "normals": normals}
-        if cfg.encoder == "pointnet2":
-            batch.update(compute_neighbourhoods(points, cfg, workers=torch.get_num_threads()))
+        batch = {"points": points, "normals": normals,
+                 **model_inputs(points, normals, cfg, workers=torch.get_num_threads())}
         tensors = {k: torch.from_numpy(np.ascontiguousarray(v)).unsqueeze(0).to(self.device) for k, v in batch.items()}
         subset = None
         if 0 < self.decode_points < len(points):

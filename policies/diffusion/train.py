@@ -65,8 +65,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--width", type=float)
     p.add_argument("--no-normals", action="store_true")
     p.add_argument("--no-visibility", action="store_true")
+    p.add_argument("--no-segment-levers", action="store_true", help="do not condition on surface-segment lever arms")
     p.add_argument("--diffusion-steps", type=int, help="training diffusion steps T (default 1000)")
-    p.add_argument("--inference-steps", type=int, help="DDIM steps (default 20)")
+    p.add_argument("--inference-steps", type=int, help="DDIM steps (default: 20 in the paper preset, 5 in cpu)")
     p.add_argument("--schedule", choices=["linear", "cosine"])
     p.add_argument("--prediction", choices=["eps", "x0"])
     p.add_argument("--map-loss-weight", type=float)
@@ -96,6 +97,8 @@ def make_config(args: argparse.Namespace) -> DiffusionConfig:
         overrides["use_normals"] = False
     if args.no_visibility:
         overrides["use_visibility"] = False
+    if args.no_segment_levers:
+        overrides["segment_levers"] = False
     if args.preset == "paper":
         return DiffusionConfig(**overrides)
     return PRESETS[args.preset](**overrides)
