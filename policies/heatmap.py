@@ -12,6 +12,7 @@ from scipy.ndimage import uniform_filter
 from scipy.spatial import cKDTree
 
 from policies.base import Candidates
+from policies.observation import in_box
 from policies.postprocess import NMS_RADIUS, select_candidates
 
 NORMAL_RADIUS = 0.005  # metres between a pixel and the neighbours of its depth-gradient normal
@@ -80,7 +81,7 @@ def workspace_pixels(depth: np.ndarray, intrinsics: np.ndarray, extrinsics: np.n
     lo, hi = np.asarray(workspace, dtype=np.float64).reshape(2, 3)
     rows, cols = np.nonzero(valid)
     points = pixels_to_world(rows, cols, depth, intrinsics, extrinsics)
-    valid[rows, cols] = np.all((points >= lo) & (points <= hi), axis=1)
+    valid[rows, cols] = in_box(points, lo, hi)
     return valid
 
 

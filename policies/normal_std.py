@@ -30,7 +30,7 @@ from scipy.ndimage import uniform_filter
 
 from policies.base import Candidates, Policy
 from policies.heatmap import box_filter, grid_topk, pixels_to_world
-from policies.observation import camera, check_workspace, depth_image, workspace
+from policies.observation import camera, check_workspace, depth_image, in_box, workspace
 from policies.postprocess import select_candidates
 
 if TYPE_CHECKING:
@@ -125,7 +125,7 @@ def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray], box, floor_clea
             return fmap.valid
         lo, hi = cloud.min(axis=0), cloud.max(axis=0)
     lo = lo + np.array([0.0, 0.0, floor_clearance])
-    return fmap.valid & np.all((fmap.points >= lo) & (fmap.points <= hi), axis=-1)
+    return fmap.valid & in_box(fmap.points, lo, hi)
 
 
 class NormalStdPolicy(Policy):

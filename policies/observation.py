@@ -43,6 +43,11 @@ def check_workspace(box: Any, who: str) -> np.ndarray:
     return out
 
 
+def in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Mask over the last axis of ``points`` (..., 3): inside the closed box [lo, hi] on every axis."""
+    return np.all((points >= lo) & (points <= hi), axis=-1)
+
+
 def workspace(info: Mapping[str, Any] | None, who: str) -> np.ndarray | None:
     """The bin box the env puts in ``info['workspace']``, validated; None when the caller gives none."""
     if info is None or info.get("workspace") is None:

@@ -20,7 +20,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from policies.base import Candidates, Policy
-from policies.observation import camera, check_workspace, depth_image, point_cloud
+from policies.observation import camera, check_workspace, depth_image, in_box, point_cloud
 from policies.postprocess import select_candidates
 
 from .cem import fit_gmm
@@ -96,7 +96,7 @@ class DexNetPolicy(Policy):
         """Cloud points (inside the workspace, if any) seen by the depth image with an approach within the
         allowed angle of vertical."""
         if self.workspace is not None:
-            inside = np.all((points >= self.workspace[0]) & (points <= self.workspace[1]), axis=1)
+            inside = in_box(points, *self.workspace)
             points, normals = points[inside], normals[inside]
         keep, uv, z, unit = eligible_points(depth, points, normals, K, T, self.config.min_vertical_cos,
                                             self.config.visibility_tolerance)
