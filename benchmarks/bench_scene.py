@@ -1,33 +1,34 @@
-"""Scene benchmark: build + settle a 30-parcel stacked mixed pile, then capture it at 640x480.
+"""Scene benchmark: what a pile request keeps, how long building it takes, and the env reset at 30 parcels.
 
-Prints a markdown table: median wall and CPU time over a few seeds, settle steps, parcels kept,
-capture time (EGL or TinyRenderer, with each normal estimator, and the bare render), points in
-the cloud, peak RSS. The default bin cannot hold 30 parcels of the library's sizes, so a larger
-bin (framed by ``CameraConfig.for_bin``) is measured too.
-Run: ``.venv/bin/python benchmarks/bench_scene.py [--runs 3] [--parcels 30]``.
+Prints two markdown tables:
+- per layout and N (10, 30, 50; mixed object set by default): parcels kept / asked (mean and range over
+  the seeds), skipped (no room, scattered) and lost (settled outside the tote), build + settle wall and
+  CPU time (median), simulated steps, and how many piles ended at rest;
+- ``ParcelPickEnv.reset`` at ``--reset-parcels`` stacked parcels (pile build, arm, settle against the
+  arm, first capture at the env's default 640x480 camera): median wall time, and the pile build's share.
+Run: ``.venv/bin/python benchmarks/bench_scene.py [--runs 5] [--objects mixed] [--reset-runs 3]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from parcelpick_env.assets.library import AssetLibrary
-from parcelpick_env.camera.camera import Camera
-from parcelpick_env.camera.config import CameraConfig
-from parcelpick_env.scene.config import PileConfig
-from parcelpick_env.scene.pile import build_pile
-from parcelpick_env.scene.scene import BinSpec
-from parcelpick_env.sim.simulator import Simulator
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-BINS = {
-    "default 0.70x0.50 m": BinSpec(),
-    "large 1.20x0.90 m": BinSpec(inner_size=(1.2, 0.9), wall_height=0.35),
-}
+from parcelpick_env.assets.library import OBJECT_SETS, AssetLibrary  # noqa: E402
+from parcelpick_env.scene.config import LAYOUTS, PileConfig  # noqa: E402
+from parcelpick_env.scene.pile import build_pile  # noqa: E402
+from parcelpick_env.sim.config import SimConfig  # noqa: E402
+from parcelpick_env.sim.simulator import Simulator  # noqa: E402
+
+COUNTS = (10, 30, 50)
 
 
 def _timed(fn):
@@ -36,49 +37,83 @@ def _timed(fn):
     return out, time.perf_counter() - wall, time.process_time() - cpu
 
 
+def _pile_rows(object_sets: list[str], runs: int, library: AssetLibrary) -> list[str]:
+    rows = []
+    with Simulator(SimConfig(egl_rendering=False)) as sim:
+        for object_set in object_sets:
+            for layout in LAYOUTS:
+                for n in COUNTS:
+                    config = PileConfig(num_parcels=n, layout=layout, object_set=object_set)
+                    kept, skipped, lost, walls, cpus, steps, rest = [], [], [], [], [], [], 0
+                    for seed in range(runs):
+                        scene, wall, cpu = _timed(lambda: build_pile(sim, config, seed=seed, library=library))
+                        kept.append(len(scene.parcels))
+                        skipped.append(scene.meta["skipped"])
+                        lost.append(scene.meta["lost"])
+                        walls.append(wall)
+                        cpus.append(cpu)
+                        steps.append(scene.meta["settle_steps"])
+                        rest += bool(scene.meta["at_rest"])
+                    rows.append(f"| {object_set} | {layout} | {n} | {np.mean(kept):.1f} / {n} ({100 * np.mean(kept) / n:.0f}%) "
+                                f"| {min(kept)}-{max(kept)} | {np.mean(skipped):.1f} | {np.mean(lost):.1f} "
+                                f"| {statistics.median(walls):.2f} | {statistics.median(cpus):.2f} "
+                                f"| {statistics.median(steps):.0f} | {rest}/{runs} |")
+                    print(rows[-1], file=sys.stderr, flush=True)
+    return rows
+
+
+def _reset_rows(parcels: int, runs: int) -> list[str]:
+    from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+
+    env = ParcelPickEnv(num_parcels=parcels, layout="stacked", object_set="mixed")
+    from parcelpick_env.scene import pile
+
+    build_times: list[float] = []
+    original = pile.build_pile
+
+    def timed_build(*args, **kwargs):
+        scene, wall, _ = _timed(lambda: original(*args, **kwargs))
+        build_times.append(wall)
+        return scene
+
+    pile.build_pile = timed_build
+    resets, kept = [], []
+    try:
+        env.reset(seed=1000)  # first reset: EGL, URDF and the asset library load once per process
+        build_times.clear()
+        for seed in range(runs):
+            (_, info), wall, _ = _timed(lambda: env.reset(seed=seed))
+            resets.append(wall)
+            kept.append(info["parcels_placed"])
+    finally:
+        pile.build_pile = original
+        env.close()
+    return [f"| {parcels} stacked mixed, {env.config.camera.width}x{env.config.camera.height} camera | "
+            f"{statistics.median(resets):.2f} | {min(resets):.2f}-{max(resets):.2f} | "
+            f"{statistics.median(build_times):.2f} | {min(kept)}-{max(kept)} |"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--parcels", type=int, default=30)
+    parser.add_argument("--runs", type=int, default=5, help="seeds per (layout, N)")
+    parser.add_argument("--objects", default="mixed", help=f"comma-separated object sets, or 'all' ({OBJECT_SETS})")
+    parser.add_argument("--reset-parcels", type=int, default=30)
+    parser.add_argument("--reset-runs", type=int, default=3, help="env resets timed (0 skips the env)")
     args = parser.parse_args()
+    object_sets = list(OBJECT_SETS) if args.objects == "all" else args.objects.split(",")
 
-    _, lib_wall, _ = _timed(lambda: AssetLibrary.generate(seed=0))
     library = AssetLibrary.default(0)
-    rows = []
-    with Simulator() as sim:
-        for name, spec in BINS.items():
-            config = PileConfig(num_parcels=args.parcels, layout="stacked", object_set="mixed", bin=spec)
-            cams = {m: Camera(CameraConfig.for_bin(spec, normal_method=m)) for m in ("open3d", "organized")}
-            build, build_cpu, steps, kept = [], [], [], []
-            capture = {m: [] for m in cams}
-            render = []
-            points = 0
-            for seed in range(args.runs):
-                scene, wall, cpu = _timed(lambda: build_pile(sim, config, seed=seed, library=library))
-                build.append(wall)
-                build_cpu.append(cpu)
-                steps.append(scene.meta["settle_steps"])
-                kept.append(len(scene.parcels))
-                for method, cam in cams.items():
-                    frame, wall, _ = _timed(lambda: cam.capture(sim, scene, np.random.default_rng(seed)))
-                    capture[method].append(wall)
-                    points = len(frame.points)
-                render.append(_timed(lambda: cams["open3d"]._render(sim))[1])
-            rows.append((name, statistics.median(build), statistics.median(build_cpu), statistics.median(steps),
-                         f"{min(kept)}-{max(kept)}", statistics.median(capture["open3d"]),
-                         statistics.median(capture["organized"]), statistics.median(render),
-                         cams["open3d"].renderer, points))
-
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"\n### Scene: {args.parcels} stacked mixed parcels, median of {args.runs} seeds "
-          f"(asset library generation: {lib_wall:.2f} s)\n")
-    print("| bin | build+settle wall (s) | build+settle CPU (s) | settle steps | parcels kept | "
-          "capture 640x480, Open3D normals (s) | capture, organized normals (s) | of which render (s) | renderer | "
-          "points | peak RSS (MB) |")
+    rows = _pile_rows(object_sets, args.runs, library)
+    print(f"\n### Piles: parcels kept against parcels asked ({args.runs} seeds each)\n")
+    print("| object set | layout | asked | kept (mean) | kept (range) | skipped | lost | build+settle wall (s) | "
+          "CPU (s) | sim steps | at rest |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r[0]} | {r[1]:.2f} | {r[2]:.2f} | {r[3]:.0f} | {r[4]} | {r[5]:.3f} | {r[6]:.3f} | {r[7]:.3f} | "
-              f"{r[8]} | {r[9]} | {peak_mb:.0f} |")
+    print("\n".join(rows))
+    if args.reset_runs > 0:
+        print(f"\n### ParcelPickEnv.reset, median of {args.reset_runs}\n")
+        print("| pile | reset wall (s) | range (s) | of which pile build (s) | parcels kept |")
+        print("|---|---|---|---|---|")
+        print("\n".join(_reset_rows(args.reset_parcels, args.reset_runs)))
 
 
 if __name__ == "__main__":

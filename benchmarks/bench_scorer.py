@@ -31,6 +31,7 @@ from parcelpick_env.suction.scorer import SuctionScorer  # noqa: E402
 from parcelpick_env.suction.visibility import camera_rays, object_visibility  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
+BELLOWS_RADIUS = 0.025  # the 50 mm bellows cup of docs/cup_seal.md
 
 
 def overhead_camera(bin_spec: BinSpec, height: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
@@ -83,7 +84,7 @@ def load_pile(num: int, seed: int, synthetic: bool):
                 except Exception as error:  # noqa: BLE001 - fall back, but say why
                     print(f"Camera unavailable ({type(error).__name__}: {error}); ray casting the view")
             source = (f"build_pile (mixed, stacked, seed {seed}; "
-                      f"{len(scene.meta.get('removed_outside', []))} parcels left the bin)")
+                      f"{scene.meta['lost']} parcels left the bin)")
             return scene.world_meshes(), scene.world_coms(), scene.bin.meshes(), scene.bin, source, frame
         except Exception as error:  # noqa: BLE001 - fall back, but say why
             print(f"build_pile unavailable ({type(error).__name__}: {error}); using a synthetic pile")
@@ -148,8 +149,15 @@ def main() -> None:
     config = SuctionConfig(num_threads=args.threads)
     t_init, _, scorer = best_of(1, lambda: SuctionScorer(meshes, coms, obstacles, config))
     scorer.seal(points[:8], normals[:8], ids[:8])  # first query builds the BVHs
+    # The bellows cup (docs/cup_seal.md) at its 25 mm lip; contact tips hover 1 mm off the surface.
+    bellows = SuctionScorer(meshes, coms, obstacles, SuctionConfig(num_threads=args.threads, seal_model="bellows",
+                                                                   cup_radius=BELLOWS_RADIUS))
+    bellows.seal(points[:8], normals[:8], ids[:8])
+    tips = points + 0.001 * normals
     rows = [
         ("seal (72 rim + 19 inner rays)", lambda: scorer.seal(points, normals, ids)),
+        ("seal, bellows r=25 mm (91 rays, rim plane fit)", lambda: bellows.seal(points, normals, ids)),
+        ("contact_seal, bellows r=25 mm (tips 1 mm off)", lambda: bellows.contact_seal(tips, -normals, ids)),
         ("wrench", lambda: scorer.wrench(points, normals, ids)),
         ("collision (31 segments)", lambda: scorer.collision(points, normals)),
         ("score: all four + product", lambda: scorer.score(points, normals, ids, visibility)),
@@ -159,9 +167,8 @@ def main() -> None:
                                        lambda: object_visibility(meshes, K, T, width, height, obstacles,
                                                                          num_threads=args.threads))
     results = {name: best_of(args.repeats, fn) for name, fn in rows}
-    seal = results[rows[0][0]][2]
-    coll = results[rows[2][0]][2]
-    scores = results[rows[3][0]][2]
+    outputs = [result for _, _, result in results.values()]
+    seal, bellows_seal, contact, _, coll, scores = outputs[:6]
 
     print(f"\nScene: {source}, {len(meshes)} parcels, {faces} parcel triangles; "
           f"{n} visible candidates; Open3D {o3d.__version__}, "
@@ -172,7 +179,12 @@ def main() -> None:
         print(f"| {name} | {wall * 1e3:.1f} | {cpu * 1e3:.1f} | {n / wall:,.0f} |")
     print(f"| object_visibility, {width}x{height} (once per scene) | {t_vis * 1e3:.1f} | {c_vis * 1e3:.1f} | - |")
     print(f"| SuctionScorer.__init__ (once per scene) | {t_init * 1e3:.1f} | - | - |")
-    print(f"\nmean seal {seal.mean():.3f}, collision-free {coll.mean():.3f}, "
+    on_parcel = ids >= 0
+    reasons = ", ".join(f"{name} {np.mean(contact.reason[on_parcel] == i):.2f}"
+                        for i, name in enumerate(contact.REASONS))
+    print(f"\nbellows: mean seal {bellows_seal.mean():.3f}; contact_seal mean {contact.quality.mean():.3f}; "
+          f"reasons over the {on_parcel.mean():.0%} of candidates on a parcel: {reasons}")
+    print(f"mean seal {seal.mean():.3f}, collision-free {coll.mean():.3f}, "
           f"mean total {scores.total.mean():.3f}, mean visibility {visibility.mean():.3f}")
     print(f"peak RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 

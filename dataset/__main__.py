@@ -16,7 +16,9 @@ def main(argv: list[str] | None = None) -> int:
         from dataset.generate import main as run
     else:
         from dataset.stats import main as run
-    return run(argv[1:])
+    from parcelpick_env.cli import run_cli
+
+    return run_cli(run, argv[1:], prog=f"python -m dataset {argv[0]}")
 
 
 if __name__ == "__main__":

@@ -44,9 +44,9 @@ def _resources(config: GenerationConfig) -> tuple[Any, Any, Any]:
     if config.renderer is not None:
         overrides["renderer"] = config.renderer
     key = json.dumps([os.getpid(), config.library_seed, overrides], sort_keys=True)
-    cached = _RESOURCES.get("sim")
-    stale = cached is not None and cached.egl_enabled and not cached.egl_current  # another EGL sim closed
-    if _RESOURCES.get("key") != key or stale:
+    # Other simulators closing cannot blank this one's camera (parcelpick_env/sim/egl.py), so only a new key
+    # (or a new process) needs a new simulator.
+    if _RESOURCES.get("key") != key:
         if _RESOURCES.get("sim") is not None:
             _RESOURCES["sim"].close()
         _RESOURCES.update(key=key, sim=Simulator(), library=AssetLibrary.default(seed=config.library_seed),

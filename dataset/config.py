@@ -11,8 +11,14 @@ from typing import Any
 
 import numpy as np
 
-from parcelpick_env.config_checks import (config_from_dict, config_to_dict, require, require_choice, require_int,
-                                          require_positive_ints)
+from parcelpick_env.config_checks import (
+    config_from_dict,
+    config_to_dict,
+    require,
+    require_choice,
+    require_int,
+    require_positive_ints,
+)
 from parcelpick_env.suction.config import SuctionConfig
 
 SPLITS = ("train", "test")

@@ -15,7 +15,9 @@ import json
 import logging
 import multiprocessing as mp
 import os
+import shutil
 import sys
+import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
@@ -23,10 +25,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
-from dataset.config import COMPRESSIONS, LAYOUTS, OBJECT_SETS, RANDOM, SPLITS, GenerationConfig
+from dataset.config import (
+    COMPRESSIONS,
+    LAYOUTS,
+    OBJECT_SETS,
+    RANDOM,
+    SPLITS,
+    GenerationConfig,
+)
 from dataset.storage import (
     MANIFEST,
     CorruptShardError,
@@ -37,6 +45,7 @@ from dataset.storage import (
     write_manifest,
     write_shard,
 )
+from parcelpick_env.cli import check_output_path, run_cli
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +99,19 @@ def _run_pool(indices: list[int], config: GenerationConfig, annotate_fn: Annotat
               workers: int) -> Iterator[tuple]:
     # spawn, not fork: pybullet, Open3D and OpenMP state must not be inherited; each worker builds its own.
     context = mp.get_context("spawn")
-    with context.Pool(workers, initializer=_init_worker, initargs=(config, annotate_fn)) as pool:
+    pool = context.Pool(workers, initializer=_init_worker, initargs=(config, annotate_fn))
+    finished = False
+    try:
         yield from pool.imap_unordered(_annotate_index, indices, chunksize=1)
+        finished = True
+    finally:
+        # A finished pool is closed, not terminated: its workers then exit normally and run their exit handlers,
+        # which remove each worker's simulator temp directory. An interrupted one is stopped at once.
+        if finished:
+            pool.close()
+        else:
+            pool.terminate()
+        pool.join()
 
 
 def _run_ray(indices: list[int], config: GenerationConfig, annotate_fn: AnnotateFn | None, workers: int,
@@ -102,13 +122,18 @@ def _run_ray(indices: list[int], config: GenerationConfig, annotate_fn: Annotate
     except ImportError as exc:  # pragma: no cover - ray is a dev/optional dependency
         raise RuntimeError("the ray backend needs `pip install 'ray[default]'` (extra 'ray')") from exc
     started = False
+    scratch = None
     if not ray.is_initialized():
         if address is None:
-            # A local cluster's workers must import this checkout even when it is not pip-installed.
+            # A local cluster's workers must import this checkout even when it is not pip-installed. Their
+            # temporary files (each worker's simulator OBJ directory) go to one scratch directory removed
+            # below: Ray kills its workers at shutdown, so their own exit handlers never run.
             root = str(Path(__file__).resolve().parents[1])
             path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)
+            scratch = tempfile.mkdtemp(prefix="parcelpick_ray_workers_")
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
-                     runtime_env={"env_vars": {"PYTHONPATH": path, "RAY_USAGE_STATS_ENABLED": "0"}})
+                     runtime_env={"env_vars": {"PYTHONPATH": path, "RAY_USAGE_STATS_ENABLED": "0",
+                                               "TMPDIR": scratch}})
         else:
             ray.init(address=address, log_to_driver=False)
         started = True
@@ -126,6 +151,8 @@ def _run_ray(indices: list[int], config: GenerationConfig, annotate_fn: Annotate
     finally:
         if started:
             ray.shutdown()
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
 
 
 # ----------------------------------------------------------------------------------------------- driver
@@ -284,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    check_output_path(args.out, "--out", directory=True)
     try:
         config = config_from_args(args)
         report = generate(args.out, config, workers=args.workers, backend=args.backend,
@@ -300,4 +328,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -6,6 +6,12 @@ and can never write a scene twice. Each shard is written to ``shard-XXXXX.h5.tmp
 renamed, so a reader never sees a half-written shard under its final name. The ``complete`` attribute
 and a SHA-256 over every stored array catch truncated or corrupted files.
 
+Every read is verified by default: each stored array carries its own SHA-256 (attribute ``sha256``), and
+``ShardedDataset`` recomputes it for every array it returns, so a flipped byte anywhere in the data
+(compressed or not) fails with an error naming the shard, the scene and the array, however little of the
+dataset a caller reads. Shards written before per-array digests are verified whole, once per process, on
+first use. ``open_dataset(..., verify=False)`` skips this, for speed, when the data is known good.
+
 Why HDF5 rather than zarr: one file per shard (thousands of scenes) keeps file counts low on cluster
 file systems, h5py ships in the base environment, files open lazily per DataLoader worker and read
 only the requested scene, and the single-file shard makes the write-tmp-then-rename commit atomic.
@@ -38,6 +44,16 @@ class CorruptShardError(OSError):
     """A shard file is missing, truncated, incomplete or fails its checksum."""
 
 
+def rebuild_hint(root: Path) -> str:
+    """What to do about a corrupt shard: the generator re-verifies every shard on a re-run and rebuilds bad ones."""
+    return (f"re-run `python -m dataset.generate --out {root}` with the arguments that made it "
+            f"(its {MANIFEST} holds them) to rebuild the shard")
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def shard_name(shard: int) -> str:
     return f"shard-{shard:05d}.h5"
 
@@ -58,6 +74,13 @@ def _hash_array(digest: Any, key: str, array: np.ndarray) -> None:
         contiguous = np.ascontiguousarray(array)
         digest.update(contiguous.dtype.str.encode())
         digest.update(contiguous.tobytes())
+
+
+def array_checksum(key: str, array: np.ndarray) -> str:
+    """SHA-256 of one named array, as stored beside it (attribute ``sha256``) and checked on every read."""
+    digest = hashlib.sha256()
+    _hash_array(digest, key, np.asarray(array))
+    return digest.hexdigest()
 
 
 def records_checksum(records: Mapping[int, Mapping[str, np.ndarray]]) -> str:
@@ -135,13 +158,14 @@ def write_shard(
                 if _is_string(array):
                     data = np.array([x.decode() if isinstance(x, bytes) else str(x) for x in array.reshape(-1)],
                                     dtype=h5py.string_dtype("utf-8")).reshape(array.shape)
-                    group.create_dataset(key, data=data, track_times=False)
+                    dataset = group.create_dataset(key, data=data, track_times=False)
                 elif array.ndim == 0 or array.nbytes < _COMPRESS_MIN_BYTES:
-                    group.create_dataset(key, data=array, track_times=False)
+                    dataset = group.create_dataset(key, data=array, track_times=False)
                 else:
                     # One chunk per array: readers always load whole arrays of one scene.
-                    group.create_dataset(key, data=array, chunks=array.shape, shuffle=True, track_times=False,
-                                         **options)
+                    dataset = group.create_dataset(key, data=array, chunks=array.shape, shuffle=True,
+                                                   track_times=False, **options)
+                dataset.attrs["sha256"] = array_checksum(key, array)
         handle.attrs["format_version"] = FORMAT_VERSION
         handle.attrs["shard"] = shard
         handle.attrs["scene_start"] = scene_range.start
@@ -157,15 +181,40 @@ def write_shard(
             "sha256": checksum, "bytes": path.stat().st_size}
 
 
-def read_group(group: h5py.Group) -> Record:
-    """Load every array of one scene group; strings come back as numpy unicode arrays."""
-    out: Record = {}
-    for key, dataset in group.items():
+def _where(group: h5py.Group) -> str:
+    return f"shard {group.file.filename}, scene {group.attrs.get('scene_index', '?')} ({group.name.lstrip('/')})"
+
+
+def read_array(group: h5py.Group, key: str, *, verify: bool = True) -> np.ndarray:
+    """One array of a scene group (strings as numpy unicode), checked against its stored SHA-256 when
+    ``verify`` and the shard has one; ``CorruptShardError`` naming shard, scene and array otherwise."""
+    try:
+        dataset = group[key]
         if h5py.check_string_dtype(dataset.dtype) is not None:
-            out[key] = np.asarray(dataset.asstr()[()], dtype=str)
+            array = np.asarray(dataset.asstr()[()], dtype=str)
         else:
-            out[key] = dataset[()]
-    return out
+            array = dataset[()]
+        expected = dataset.attrs.get("sha256") if verify else None
+    except (OSError, RuntimeError, ValueError) as exc:  # h5py: a damaged chunk fails to decompress
+        raise CorruptShardError(f"{_where(group)}: array {key!r} is unreadable ({_one_line(exc)}); "
+                                f"{rebuild_hint(Path(group.file.filename).parent)}") from exc
+    if expected is not None and array_checksum(key, array) != str(expected):
+        raise CorruptShardError(f"{_where(group)}: array {key!r} fails its checksum (the file is corrupt); "
+                                f"{rebuild_hint(Path(group.file.filename).parent)}")
+    return array
+
+
+def has_array_checksums(handle: h5py.File) -> bool:
+    """Whether this shard stores per-array digests (written since they were added); checked on its first array."""
+    for group in handle.values():
+        for dataset in group.values():
+            return "sha256" in dataset.attrs
+    return False
+
+
+def read_group(group: h5py.Group, *, verify: bool = True) -> Record:
+    """Load every array of one scene group (see ``read_array``)."""
+    return {key: read_array(group, key, verify=verify) for key in group}
 
 
 def _open_checked(path: Path) -> h5py.File:
@@ -217,11 +266,15 @@ def verify_shard(path: str | os.PathLike, *, checksum: bool = True, expected: ra
         if checksum:
             try:
                 records = {i: read_group(handle[SCENE_GROUP.format(i)]) for i in info.scene_range}
+            except CorruptShardError:
+                raise
             except (OSError, RuntimeError, KeyError, ValueError) as exc:
-                raise CorruptShardError(f"shard file {path} has unreadable data: {exc}") from exc
+                raise CorruptShardError(f"shard file {path} has unreadable data: {_one_line(exc)}; "
+                                        f"{rebuild_hint(path.parent)}") from exc
             actual = records_checksum(records)
             if actual != info.sha256:
-                raise CorruptShardError(f"shard file {path} fails its checksum ({actual[:12]} != {info.sha256[:12]})")
+                raise CorruptShardError(f"shard file {path} fails its checksum ({actual[:12]} != {info.sha256[:12]}); "
+                                        f"{rebuild_hint(path.parent)}")
         return info
     finally:
         handle.close()
@@ -258,12 +311,14 @@ class ShardedDataset:
     """Read access to a verified dataset directory, one scene at a time.
 
     HDF5 handles are opened lazily and per process, so an instance can be handed to DataLoader
-    workers (forked or spawned) and each opens its own files.
+    workers (forked or spawned) and each opens its own files. With ``verify`` every array read is
+    checked against its stored digest (a legacy shard without digests is checksummed whole on first use).
     """
 
-    def __init__(self, root: str | os.PathLike, manifest: dict[str, Any]) -> None:
+    def __init__(self, root: str | os.PathLike, manifest: dict[str, Any], verify: bool = True) -> None:
         self.root = Path(root)
         self.manifest = manifest
+        self.verify = bool(verify)
         self.config: dict[str, Any] = manifest["config"]
         self._locations: list[tuple[str, str]] = []
         self.scene_indices: list[int] = []
@@ -272,6 +327,7 @@ class ShardedDataset:
                 self._locations.append((entry["file"], SCENE_GROUP.format(index)))
                 self.scene_indices.append(index)
         self._handles: dict[str, h5py.File] = {}
+        self._verified: set[int] = set()  # scenes whose every array this process has checked
         self._pid = os.getpid()
 
     def __len__(self) -> int:
@@ -283,25 +339,33 @@ class ShardedDataset:
         handle = self._handles.get(name)
         if handle is None:
             handle = _open_checked(self.root / name)
+            if self.verify and not has_array_checksums(handle):
+                verify_shard(self.root / name, checksum=True)  # legacy shard: whole-file SHA-256, once
             self._handles[name] = handle
         return handle
 
     def scene(self, i: int, keys: Iterable[str] | None = None) -> Record:
-        """Arrays of the ``i``-th stored scene (all of them, or only ``keys``)."""
+        """Arrays of the ``i``-th stored scene (all of them, or only ``keys``), each checked when ``verify``.
+
+        The first read of a scene in a process checks every array of it, not just the requested ones, so a
+        damaged array fails every consumer whichever keys it reads; later reads check what they return.
+        """
         if not -len(self) <= i < len(self):
             raise IndexError(f"scene {i} out of range for {len(self)} scenes")
+        i %= len(self)
         name, group_name = self._locations[i]
         group = self._file(name)[group_name]
-        if keys is None:
-            return read_group(group)
-        out: Record = {}
-        for key in keys:
+        keys = None if keys is None else list(keys)
+        for key in keys or ():
             if key not in group:
                 raise KeyError(f"{self.root / name}:{group_name} has no array {key!r}")
-            dataset = group[key]
-            out[key] = (np.asarray(dataset.asstr()[()], dtype=str)
-                        if h5py.check_string_dtype(dataset.dtype) is not None else dataset[()])
-        return out
+        if self.verify and i not in self._verified:
+            record = read_group(group, verify=True)
+            self._verified.add(i)
+            return record if keys is None else {key: record[key] for key in keys}
+        if keys is None:
+            return read_group(group, verify=self.verify)
+        return {key: read_array(group, key, verify=self.verify) for key in keys}
 
     def close(self) -> None:
         for handle in self._handles.values():
@@ -320,9 +384,12 @@ class ShardedDataset:
             pass
 
 
-def open_dataset(root: str | os.PathLike, *, checksum: bool = False, allow_incomplete: bool = False) -> ShardedDataset:
-    """Open a dataset directory after checking every shard; errors name the offending file.
+def open_dataset(root: str | os.PathLike, *, verify: bool = True, checksum: bool = False,
+                 allow_incomplete: bool = False) -> ShardedDataset:
+    """Open a dataset directory after checking every shard's structure; errors name the offending file.
 
+    ``verify`` (default) checks every array read against its digest; ``verify=False`` skips that, for speed.
+    ``checksum`` additionally re-reads and checksums every shard now (what the generator does on resume).
     A dataset whose generation has not finished is refused unless ``allow_incomplete``; then only its
     finished shards are read.
     """
@@ -338,5 +405,5 @@ def open_dataset(root: str | os.PathLike, *, checksum: bool = False, allow_incom
                                     f"{entry['bytes']} (truncated or replaced)")
         info = verify_shard(path, checksum=checksum, expected=range(entry["scene_start"], entry["scene_stop"]))
         if info.sha256 != entry["sha256"]:
-            raise CorruptShardError(f"shard file {path} does not match the manifest's checksum")
-    return ShardedDataset(root, manifest)
+            raise CorruptShardError(f"shard file {path} does not match the manifest's checksum; {rebuild_hint(root)}")
+    return ShardedDataset(root, manifest, verify=verify)

@@ -28,7 +28,8 @@ class ParcelSuctionDataset(Dataset):
     fewer). ``augment`` rotates the scene about the vertical axis (which leaves every label, including
     the gravity-dependent wrench, unchanged) and jitters points by ``jitter_std`` metres.
     Randomness is drawn from ``(seed, epoch, index)`` so an epoch is reproducible; call
-    ``set_epoch`` to vary it between epochs.
+    ``set_epoch`` to vary it between epochs. ``verify`` (default) checks every array read against its stored
+    digest (``dataset.storage``); ``verify_checksums`` also checksums every shard up front.
     """
 
     def __init__(
@@ -42,6 +43,7 @@ class ParcelSuctionDataset(Dataset):
         transform: Callable[[dict[str, torch.Tensor]], dict[str, Any]] | None = None,
         seed: int = 0,
         verify_checksums: bool = False,
+        verify: bool = True,
     ) -> None:
         if num_points is not None and (not isinstance(num_points, int) or num_points < 1):
             raise ValueError(f"num_points must be a positive integer or None, got {num_points!r}")
@@ -49,7 +51,7 @@ class ParcelSuctionDataset(Dataset):
             raise ValueError(f"jitter_std must be >= 0, got {jitter_std}")
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
-        self.store = open_dataset(root, checksum=verify_checksums)
+        self.store = open_dataset(root, verify=verify, checksum=verify_checksums)
         stored_split = self.store.config["split"]
         if split is not None and split != stored_split:
             raise ValueError(f"{root} holds the {stored_split!r} split, not {split!r}")

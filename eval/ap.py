@@ -2,6 +2,8 @@
 
     python eval/ap.py --policy normal_std --data data/test --scenes 100 --out results/normal_std_ap.json
     python -m eval.ap --policy diffusion --data data/test --checkpoint runs/diffusion/best.pt
+    python -m eval.ap --policy cao --data data/test --dump runs/dumps/cao        # SuctionNet N x 7 files
+    python -m eval.ap --predictions runs/dumps/cao --data data/test             # score a dump, any code base's
 
 Per scene: the policy sees an observation rebuilt from the stored capture (the labelled cloud, RGB-D
 and calibration; never the labels). Its candidates go through NMS (0.02 m), each is assigned to the
@@ -30,7 +32,10 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
 
 from dataset.storage import Record, ShardedDataset, open_dataset  # noqa: E402
 from eval.metrics import DEFAULT_MAX_K, DEFAULT_THRESHOLDS, aggregate_ap, scene_ap, select_predictions  # noqa: E402
+from eval.stats import format_interval  # noqa: E402
+from eval.suctionnet_format import from_suctionnet, read_view, to_suctionnet, view_path, write_view  # noqa: E402
 from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
+from parcelpick_env.cli import check_input_dir, check_output_path, check_policy, run_cli, usage_exit  # noqa: E402
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene  # noqa: E402
 from parcelpick_env.suction.config import SuctionConfig  # noqa: E402
 from parcelpick_env.suction.scorer import SuctionScorer  # noqa: E402
@@ -143,12 +148,23 @@ def _policy_num_points(policy: Policy) -> int | None:
     return None
 
 
+def predict_scene(policy: Policy, record: Record, config: APConfig, rng: np.random.Generator) -> Candidates:
+    """The policy's checked candidates for one stored capture (world frame, descending score)."""
+    num_points = config.num_points or _policy_num_points(policy)
+    obs, info = observation_from_record(record, num_points, rng)
+    return _checked(policy.predict(obs, info, top_k=config.candidates), policy)
+
+
 def evaluate_scene(policy: Policy, record: Record, config: APConfig, suction: SuctionConfig,
                    rng: np.random.Generator, library: AssetLibrary | None = None) -> tuple[Any, dict[str, Any]]:
     """AP curves and a per-scene summary for one stored scene."""
-    num_points = config.num_points or _policy_num_points(policy)
-    obs, info = observation_from_record(record, num_points, rng)
-    candidates = _checked(policy.predict(obs, info, top_k=config.candidates), policy)
+    return score_scene(predict_scene(policy, record, config, rng), record, config, suction, library)
+
+
+def score_scene(candidates: Candidates, record: Record, config: APConfig, suction: SuctionConfig,
+                library: AssetLibrary | None = None) -> tuple[Any, dict[str, Any]]:
+    """The protocol on given candidates (a policy's, or read from a SuctionNet dump): NMS, assignment, the
+    per-object cap, re-scoring on the true meshes, and the precision curves."""
     kept = select_candidates(candidates.points, candidates.normals, candidates.scores, top_k=len(candidates),
                              nms_radius=config.nms_radius)
 
@@ -161,7 +177,8 @@ def evaluate_scene(policy: Policy, record: Record, config: APConfig, suction: Su
         visibility = np.asarray(record["object_visibility"], dtype=np.float64)
     else:  # older records: recompute with the same rays the labels used
         depth = np.asarray(record["depth"])
-        visibility = object_visibility(scene.world_meshes(), info["intrinsics"], info["extrinsics"],
+        visibility = object_visibility(scene.world_meshes(), np.asarray(record["intrinsics"], dtype=np.float64),
+                                       np.asarray(record["extrinsics"], dtype=np.float64),
                                        depth.shape[1], depth.shape[0], occluders=scene.bin.meshes())
     if len(chosen):
         quality = scorer.score(chosen.points, chosen.normals, chosen.object_ids, visibility=visibility)
@@ -191,16 +208,27 @@ def _open(data_dir: str | os.PathLike) -> ShardedDataset:
     return open_dataset(path)
 
 
-def evaluate_ap(policy: Policy | str, data_dir: str | os.PathLike, scenes: int | None = None,
-                config: APConfig = APConfig(), progress: bool = False) -> dict[str, Any]:
+PREDICTIONS_PREFIX = "predictions:"  # the name a scored dump is reported under
+
+
+def evaluate_ap(policy: Policy | str | None, data_dir: str | os.PathLike, scenes: int | None = None,
+                config: APConfig = APConfig(), progress: bool = False, dump_dir: str | os.PathLike | None = None,
+                predictions_dir: str | os.PathLike | None = None) -> dict[str, Any]:
     """Run the protocol on the first ``scenes`` stored scenes (all by default); return the results dict.
 
-    ``policy`` is a Policy or a registered name. Keys: everything ``aggregate_ap`` returns (``AP``,
-    ``AP0.4``, ``AP0.8``, ``top1_*``, ``per_category``, ...), plus ``policy``, ``data``, ``split``,
-    ``config``, ``seconds`` and ``scenes`` (one summary per scene).
+    ``policy`` is a Policy or a registered name; or None with ``predictions_dir``, a SuctionNet-format dump
+    (``eval.suctionnet_format``) whose per-view predictions are scored instead, the best ``config.candidates``
+    of each view, as a policy is asked for. ``dump_dir`` writes every scene's predictions in that format.
+    Keys: everything ``aggregate_ap`` returns (``AP``, ``AP0.4``, ``AP0.8``, ``top1_*``, ``intervals``,
+    ``per_scene``, ``per_category``, ...), plus ``policy``, ``data``, ``split``, ``config``, ``seconds`` and
+    ``scenes`` (one summary per scene, with its stored ``index``, the unit paired comparisons match on).
     """
+    if (policy is None) == (predictions_dir is None):
+        raise ValueError("evaluate_ap needs exactly one of a policy and predictions_dir")
     if isinstance(policy, str):
         policy = _make_policy(policy, None)
+    if predictions_dir is not None and not Path(predictions_dir).is_dir():
+        raise FileNotFoundError(f"predictions directory {predictions_dir} does not exist")
     store = _open(data_dir)
     try:
         total = len(store) if scenes is None else min(int(scenes), len(store))
@@ -208,14 +236,26 @@ def evaluate_ap(policy: Policy | str, data_dir: str | os.PathLike, scenes: int |
             raise ValueError(f"nothing to evaluate: {data_dir} holds {len(store)} scenes, asked for {scenes}")
         suction_fields = store.config.get("suction")
         suction = SuctionConfig(**suction_fields) if isinstance(suction_fields, dict) else SuctionConfig()
+        split = str(store.config.get("split") or "test")
         per_scene, summaries = [], []
         started = time.perf_counter()
         for i in range(total):
             t0 = time.perf_counter()
             record = store.scene(i)
-            policy.reset(seed=config.seed + i)
-            curves, summary = evaluate_scene(policy, record, config, suction, np.random.default_rng([config.seed, i]))
-            summary.update(index=int(store.scene_indices[i]), seconds=time.perf_counter() - t0)
+            index = int(store.scene_indices[i])
+            extrinsics = np.asarray(record["extrinsics"], dtype=np.float64)
+            if policy is not None:
+                policy.reset(seed=config.seed + i)
+                candidates = predict_scene(policy, record, config, np.random.default_rng([config.seed, i]))
+            elif predictions_dir is not None:  # (checked above: exactly one of the two is set)
+                path = view_path(predictions_dir, index, split)
+                read = from_suctionnet(read_view(path), extrinsics, where=str(path))
+                candidates = Candidates(read.points[: config.candidates], read.normals[: config.candidates],
+                                        read.scores[: config.candidates])
+            if dump_dir is not None:
+                write_view(view_path(dump_dir, index, split), to_suctionnet(candidates, extrinsics))
+            curves, summary = score_scene(candidates, record, config, suction)
+            summary.update(index=index, seconds=time.perf_counter() - t0)
             per_scene.append(curves)
             summaries.append(summary)
             if progress:
@@ -224,9 +264,12 @@ def evaluate_ap(policy: Policy | str, data_dir: str | os.PathLike, scenes: int |
     finally:
         store.close()
     result = aggregate_ap(per_scene)
-    result.update(policy=policy.name, data=str(data_dir), split=store.config.get("split"),
+    name = policy.name if policy is not None else PREDICTIONS_PREFIX + str(predictions_dir)
+    result.update(policy=name, data=str(data_dir), split=store.config.get("split"),
                   config=dataclasses.asdict(config),
                   seconds=time.perf_counter() - started, scenes=summaries)
+    if dump_dir is not None:
+        result["dump"] = str(dump_dir)
     return result
 
 
@@ -234,13 +277,16 @@ def format_table(result: dict[str, Any]) -> str:
     """Markdown table: overall and per category, in percent."""
     columns = [("AP", "AP"), ("AP0.4", "AP0.4"), ("AP0.8", "AP0.8"), ("top1_AP", "Top-1 AP"),
                ("top1_AP0.4", "Top-1 AP0.4"), ("top1_AP0.8", "Top-1 AP0.8"), ("num_scenes", "scenes")]
-    lines = [f"Offline AP of {result.get('policy', '?')} on {result.get('data', '?')}", "",
+    lines = [f"Offline AP of {result.get('policy', '?')} on {result.get('data', '?')}; [95% bootstrap interval "
+             "over scenes]", "",
              "| subset | " + " | ".join(title for _, title in columns) + " |",
              "|---|" + "---|" * len(columns)]
     rows = [("overall", result)] + list(result.get("per_category", {}).items())
     for name, row in rows:
+        intervals = row.get("intervals", {})
         cells = [str(row.get(key, "-")) if key == "num_scenes" else
-                 (f"{row[key]:.2f}" if key in row else "-") for key, _ in columns]
+                 (format_interval(intervals[key]) if key in intervals else f"{row[key]:.2f}" if key in row else "-")
+                 for key, _ in columns]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -255,7 +301,11 @@ def _make_policy(name: str, checkpoint: str | None) -> Policy:
 def build_parser() -> argparse.ArgumentParser:
     d = APConfig()
     p = argparse.ArgumentParser(prog="python -m eval.ap", description=__doc__.split("\n\n")[0])
-    p.add_argument("--policy", required=True, help="registered policy name (policies/registry.py)")
+    p.add_argument("--policy", default=None, help="registered policy name (policies/registry.py)")
+    p.add_argument("--predictions", type=Path, default=None,
+                   help="score a SuctionNet-format dump (<dir>/<split>/scene_XXXX/...) instead of a policy")
+    p.add_argument("--dump", type=Path, default=None,
+                   help="write every scene's predictions here in SuctionNet-1Billion's per-view N x 7 format")
     p.add_argument("--data", required=True, type=Path, help="dataset directory (python -m dataset.generate)")
     p.add_argument("--scenes", type=int, default=None, help="evaluate only the first N scenes")
     p.add_argument("--out", type=Path, default=None, help="write the results JSON here")
@@ -271,16 +321,24 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.scenes is not None and args.scenes < 1:
-        parser.error(f"--scenes must be >= 1, got {args.scenes}")
-    if not args.data.is_dir():
-        parser.error(f"dataset directory {args.data} does not exist")
-    try:
+        usage_exit(parser.prog, f"--scenes must be >= 1, got {args.scenes}")
+    if (args.policy is None) == (args.predictions is None):
+        usage_exit(parser.prog, "give exactly one of --policy and --predictions")
+    try:  # every path and the policy are checked before the first scene is read; each error is one line
+        check_input_dir(args.data, "--data (dataset directory)")
+        if args.predictions is not None:
+            check_input_dir(args.predictions, "--predictions")
+        if args.out is not None:
+            check_output_path(args.out, "--out")
+        if args.dump is not None:
+            check_output_path(args.dump, "--dump", directory=True)
         config = APConfig(candidates=args.candidates, num_points=args.num_points, seed=args.seed)
-        policy = _make_policy(args.policy, args.checkpoint)
-    except (ValueError, TypeError, ImportError, NotImplementedError, FileNotFoundError) as exc:
-        parser.error(f"cannot make policy {args.policy!r}: {exc}")
+        policy = None if args.policy is None else check_policy(args.policy, args.checkpoint)
+    except ValueError as exc:  # UsageError from the checks, or a bad APConfig field
+        usage_exit(parser.prog, exc)
     try:
-        result = evaluate_ap(policy, args.data, scenes=args.scenes, config=config, progress=not args.quiet)
+        result = evaluate_ap(policy, args.data, scenes=args.scenes, config=config, progress=not args.quiet,
+                             dump_dir=args.dump, predictions_dir=args.predictions)
     except (ValueError, FileNotFoundError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -293,4 +351,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -3,7 +3,9 @@
 Each episode builds a pile and lets a policy pick until the bin is clear or three consecutive attempts
 fail. ``R_grasp = successes / attempts`` and ``R_object = parcels cleared / parcels placed`` are pooled
 per (object set, layout) cell. Every episode has its own seed, derived from ``--seed`` and its place in
-the grid, so the numbers do not depend on the worker count or the backend.
+the grid, so the numbers do not depend on the worker count or the backend. Each rate carries a bootstrap
+95% interval over episodes (``eval.stats``), and every attempt's outcome, cause, phase, link and condition
+is kept per episode (``attempt_log``), so the summaries can say which moves fail and how.
 
     python eval/clearance.py --policy diffusion --episodes 2 --record runs/replays
 """
@@ -25,12 +27,21 @@ if __package__ in (None, ""):  # allow `python eval/clearance.py` as well as `py
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from parcelpick_env.envs.grasp import OUTCOMES  # noqa: E402  (one list of pick outcomes, the env's)
+from parcelpick_env.envs.parcel_pick import NO_BODY  # noqa: E402  (info["failure"]["body"] when none)
+from eval.stats import bootstrap_ratio, format_interval  # noqa: E402
 from parcelpick_env.parallel import BACKENDS, parallel_map  # noqa: E402
 
 OBJECT_SETS: tuple[str, ...] = ("rectangular", "planar", "cylindrical", "mixed")
 LAYOUTS: tuple[str, ...] = ("scattered", "stacked")  # the paper's Table V column order
 # Set per episode from the grid; passing them in env_kwargs as well would be silently overridden.
-RESERVED_ENV_KWARGS: tuple[str, ...] = ("object_set", "layout", "num_parcels", "max_attempts", "record_dir")
+# obs_mode is the policy's own (Policy.obs_mode; only the oracle reads the privileged "state_dict").
+RESERVED_ENV_KWARGS: tuple[str, ...] = ("object_set", "layout", "num_parcels", "max_attempts", "record_dir",
+                                        "obs_mode")
+# 10 episodes per cell: 80 per method, about 280 attempts at 6 parcels. Scaled from the 3-per-cell report
+# (results/RESULTS.json: Diffusion-Suction - Cao R_object +3.0 [-5.8, +12.5]), a pooled rate near 30% then
+# carries a 95% interval of about +-3 to 5 points and a paired difference about +-5 to 6: gaps of 3 points stay
+# unresolved, gaps of 6 or more resolve. An episode takes about 7 s at 6 parcels on one core (144 episodes, 1,028 s).
+DEFAULT_EPISODES = 10
 
 
 @dataclass(frozen=True)
@@ -38,7 +49,7 @@ class ClearanceConfig:
     policy: str = "diffusion"
     objects: tuple[str, ...] = OBJECT_SETS
     layouts: tuple[str, ...] = LAYOUTS
-    episodes: int = 1  # per (object set, layout) cell
+    episodes: int = DEFAULT_EPISODES  # per (object set, layout) cell
     num_parcels: int = 8
     seed: int = 0
     workers: int = 1
@@ -95,6 +106,7 @@ class EpisodeResult:
     outcomes: dict[str, int]
     replay: str | None
     wall_time_s: float
+    attempt_log: list[dict[str, Any]] = field(default_factory=list)  # one attempt_record per attempt, in order
 
 
 def episode_tasks(config: ClearanceConfig) -> list[EpisodeTask]:
@@ -109,12 +121,47 @@ def episode_tasks(config: ClearanceConfig) -> list[EpisodeTask]:
     return tasks
 
 
+def attempt_record(info: dict[str, Any]) -> dict[str, Any]:
+    """What one attempt's ``info`` says about how it went: outcome, cause, phase, link, condition (and body).
+
+    The env's typed ``info['failure']`` (move, link, condition, body) is used where it exists; otherwise the
+    older ``failure_cause`` / ``failure_phase`` strings, read as the env writes them: 'free-space: tool_rod'
+    names the move and the link, and a drop's cause is the holding condition that failed.
+    """
+    failure = info.get("failure") or {}
+    outcome, cause = str(info["outcome"]), info.get("failure_cause")
+    record = {"outcome": outcome, "cause": cause, "phase": failure.get("move") or info.get("failure_phase"),
+              "link": failure.get("link"), "condition": failure.get("condition"),
+              "body": None if failure.get("body") in (None, NO_BODY) else failure.get("body")}
+    if not failure and isinstance(cause, str):
+        if ": " in cause and record["phase"] is None:
+            record["phase"], record["link"] = cause.split(": ", 1)
+        elif outcome == "dropped":
+            record["condition"] = cause
+    return record
+
+
+def failure_kind(attempt: dict[str, Any]) -> str | None:
+    """'outcome: phase' (or 'outcome: cause') for a failed attempt; None for a success."""
+    if attempt["outcome"] == "success":
+        return None
+    detail = attempt.get("phase") or attempt.get("cause")
+    return f"{attempt['outcome']}: {detail}" if detail else attempt["outcome"]
+
+
+def failure_detail(attempt: dict[str, Any]) -> str | None:
+    """The failure kind with the link or condition that failed, e.g. 'collision: free-space (tool_rod)'."""
+    kind = failure_kind(attempt)
+    extra = [str(attempt[k]) for k in ("link", "condition") if attempt.get(k)]
+    return None if kind is None else kind + (f" ({', '.join(extra)})" if extra else "")
+
+
 def run_episode(task: EpisodeTask) -> EpisodeResult:
     """One closed-loop episode; top-level so process pools and Ray can ship it."""
     import gymnasium as gym
 
     import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
-    from policies.registry import make_policy
+    from policies.registry import make_policy, obs_mode_of
 
     cfg = task.config
     env_kwargs = dict(cfg.env_kwargs, object_set=task.objects, layout=task.layout, num_parcels=cfg.num_parcels)
@@ -126,11 +173,12 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
     policy = make_policy(cfg.policy, **policy_kwargs)
 
     start = time.perf_counter()
-    env = gym.make("ParcelPick-v0", **env_kwargs)
+    env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads
     try:
         obs, info = env.reset(seed=task.seed)
         policy.reset(task.seed)
         outcomes: Counter[str] = Counter()
+        attempt_log: list[dict[str, Any]] = []
         first = True
         while info.get("reason") != "cleared":  # an empty pile needs no attempt
             action = _choose_action(policy, obs, info, env.unwrapped.action_space.shape)
@@ -139,6 +187,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 first = False
             obs, _, terminated, truncated, info = env.step(action)
             outcomes[info["outcome"]] += 1
+            attempt_log.append(attempt_record(info))
             if terminated or truncated:
                 break
         replay = getattr(env.unwrapped, "replay_path", None)
@@ -149,7 +198,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         attempts=int(info["attempts"]), successes=int(info["successes"]),
         parcels_placed=int(info["parcels_placed"]), parcels_cleared=int(info["parcels_cleared"]),
         reason=str(info.get("reason", "truncated")), outcomes=dict(outcomes),
-        replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start)
+        replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start, attempt_log=attempt_log)
 
 
 def _choose_action(policy, obs, info, shape) -> np.ndarray:
@@ -168,32 +217,64 @@ def _log_policy_extras(env, policy) -> None:
         recorder.log_denoising(trajectory.points, trajectory.maps)
 
 
+RATES: dict[str, tuple[str, str]] = {"R_grasp": ("successes", "attempts"), "R_object": ("cleared", "placed")}
+
+
+def _rate_intervals(episodes: list[EpisodeResult], strata: list[str] | None = None) -> dict[str, dict[str, Any]]:
+    """Bootstrap 95% intervals of R_grasp and R_object (pooled ratios) over the given episodes."""
+    fields = {"successes": "successes", "attempts": "attempts", "cleared": "parcels_cleared",
+              "placed": "parcels_placed"}
+    col = {k: np.array([getattr(r, f) for r in episodes], dtype=np.float64) for k, f in fields.items()}
+    return {rate: bootstrap_ratio(col[num], col[den], scale=100.0, strata=strata).to_dict()
+            for rate, (num, den) in RATES.items()}
+
+
 def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
-    """Pool episodes per cell (the paper's Table V) and over everything."""
+    """Pool episodes per cell (the paper's Table V) and over everything, each rate with its bootstrap 95%
+    interval over episodes (``intervals``; overall, resampled within each cell so every cell keeps its size),
+    and the failed attempts counted by kind (``failures``: 'outcome: phase') and in detail (``causes``)."""
     cells: dict[str, dict[str, Any]] = {}
+    members: dict[str, list[EpisodeResult]] = {}
     for r in results:
-        cell = cells.setdefault(f"{r.objects}/{r.layout}", {"objects": r.objects, "layout": r.layout,
-                                                             "attempts": 0, "successes": 0, "placed": 0,
-                                                             "cleared": 0, "episodes": 0,
-                                                             "outcomes": Counter()})
+        key = f"{r.objects}/{r.layout}"
+        members.setdefault(key, []).append(r)
+        cell = cells.setdefault(key, {"objects": r.objects, "layout": r.layout, "attempts": 0, "successes": 0,
+                                      "placed": 0, "cleared": 0, "episodes": 0, "outcomes": Counter(),
+                                      "failures": Counter(), "causes": Counter()})
         cell["attempts"] += r.attempts
         cell["successes"] += r.successes
         cell["placed"] += r.parcels_placed
         cell["cleared"] += r.parcels_cleared
         cell["episodes"] += 1
         cell["outcomes"].update(r.outcomes)
-    total = {"attempts": 0, "successes": 0, "placed": 0, "cleared": 0, "outcomes": Counter()}
-    for cell in cells.values():
+        cell["failures"].update(k for k in map(failure_kind, r.attempt_log) if k)
+        cell["causes"].update(k for k in map(failure_detail, r.attempt_log) if k)
+    total: dict[str, Any] = {"attempts": 0, "successes": 0, "placed": 0, "cleared": 0, "episodes": 0}
+    counters: dict[str, Counter[str]] = {"outcomes": Counter(), "failures": Counter(), "causes": Counter()}
+    for key, cell in cells.items():
         cell["R_grasp"] = 100.0 * cell["successes"] / max(cell["attempts"], 1)
         cell["R_object"] = 100.0 * cell["cleared"] / max(cell["placed"], 1)
-        for key in ("attempts", "successes", "placed", "cleared"):
-            total[key] += cell[key]
-        total["outcomes"].update(cell["outcomes"])
-        cell["outcomes"] = dict(cell["outcomes"])
+        cell["intervals"] = _rate_intervals(members[key])
+        for k in ("attempts", "successes", "placed", "cleared", "episodes"):
+            total[k] += cell[k]
+        for k, counter in counters.items():
+            counter.update(cell[k])
+            cell[k] = dict(cell[k])
     total["R_grasp"] = 100.0 * total["successes"] / max(total["attempts"], 1)
     total["R_object"] = 100.0 * total["cleared"] / max(total["placed"], 1)
-    total["outcomes"] = dict(total["outcomes"])
+    total["intervals"] = _rate_intervals(results, [f"{r.objects}/{r.layout}" for r in results]) if results else {}
+    total.update({k: dict(v) for k, v in counters.items()})
     return {"cells": cells, "overall": total}
+
+
+def _with_interval(cell: dict[str, Any], rate: str) -> str:
+    interval = cell.get("intervals", {}).get(rate)
+    return format_interval(interval) if interval else f"{cell[rate]:.2f}"
+
+
+def rate_pair(cell: dict[str, Any]) -> str:
+    """'R_grasp [lo, hi] / R_object [lo, hi]' of one pooled cell (percent)."""
+    return f"{_with_interval(cell, 'R_grasp')} / {_with_interval(cell, 'R_object')}"
 
 
 def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) -> str:
@@ -203,12 +284,15 @@ def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) 
         row = []
         for layout in layouts:
             cell = summary["cells"].get(f"{obj}/{layout}")
-            row.append("–" if cell is None else f"{cell['R_grasp']:.2f} / {cell['R_object']:.2f}")
+            row.append("–" if cell is None else rate_pair(cell))
         lines.append(f"| {obj} | " + " | ".join(row) + " |")
     o = summary["overall"]
-    lines.append(f"\nOverall: R_grasp {o['R_grasp']:.2f}%  R_object {o['R_object']:.2f}%  "
-                 f"({o['successes']}/{o['attempts']} attempts, {o['cleared']}/{o['placed']} parcels)")
+    lines.append(f"\nOverall: R_grasp {_with_interval(o, 'R_grasp')}%  R_object {_with_interval(o, 'R_object')}%  "
+                 f"({o['successes']}/{o['attempts']} attempts, {o['cleared']}/{o['placed']} parcels; "
+                 "[95% bootstrap interval over episodes])")
     lines.append("Outcomes: " + ", ".join(f"{k} {o['outcomes'].get(k, 0)}" for k in OUTCOMES))
+    if o.get("causes"):
+        lines.append("Failures: " + ", ".join(f"{k} {n}" for k, n in sorted(o["causes"].items(), key=lambda kv: -kv[1])))
     return "\n".join(lines)
 
 
@@ -230,7 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", default=None, help="checkpoint for learned policies (default: shipped)")
     p.add_argument("--objects", nargs="+", default=list(OBJECT_SETS), choices=OBJECT_SETS)
     p.add_argument("--layout", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
-    p.add_argument("--episodes", type=int, default=1, help="episodes per (object set, layout) cell")
+    p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="episodes per (object set, layout) cell")
     p.add_argument("--parcels", type=int, default=8, help="parcels per pile")
     p.add_argument("--max-attempts", type=int, default=None, help="truncate an episode after this many attempts")
     p.add_argument("--seed", type=int, default=0)
@@ -244,10 +328,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from policies.registry import available_policies
+    from parcelpick_env.cli import UsageError, check_output_path, check_policy
 
-    if args.policy not in available_policies():
-        print(f"error: unknown policy {args.policy!r}; available: {', '.join(available_policies())}", file=sys.stderr)
+    try:  # before any pile is built: paths, the policy name and its checkpoint (the policy is made once here)
+        if args.record is not None:
+            check_output_path(args.record, "--record", directory=True)
+        if args.out is not None:
+            check_output_path(args.out, "--out")
+        check_policy(args.policy, args.checkpoint)
+    except UsageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
         config = ClearanceConfig(policy=args.policy, objects=tuple(args.objects), layouts=tuple(args.layout),
@@ -272,4 +362,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from parcelpick_env.cli import run_cli
+
+    sys.exit(run_cli(main))

@@ -1,4 +1,4 @@
-"""Offline AP metrics (SuctionNet protocol, DESIGN.md 'Evaluation'), as pure vectorised functions.
+"""Offline AP metrics (SuctionNet protocol, docs/protocols.md), as pure vectorised functions.
 
 Nothing here reads files or runs the scorer: ``eval/ap.py`` produces per-prediction scores, object
 assignments and qualities, and these functions turn them into precision curves and AP numbers.
@@ -8,9 +8,11 @@ All AP values are reported in percent, like the paper's tables.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
+
+from eval.stats import bootstrap_means
 
 DEFAULT_THRESHOLDS: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8)
 DEFAULT_MAX_K = 50
@@ -86,14 +88,23 @@ def scene_ap(scores: np.ndarray, qualities: np.ndarray, categories: Sequence[str
     return result
 
 
-def _summarise(curves: np.ndarray, thresholds: tuple[float, ...]) -> dict[str, float]:
-    """Mean precision (percent) over scenes, k and θ, for a (S, max_k, T) stack of curves."""
-    out = {"AP": 100.0 * float(curves.mean()), "top1_AP": 100.0 * float(curves[:, 0, :].mean())}
+def per_scene_metrics(curves: np.ndarray, thresholds: tuple[float, ...]) -> dict[str, np.ndarray]:
+    """Each AP figure of every scene (percent) from a (S, max_k, T) stack: the figure is the mean over scenes."""
+    out = {"AP": curves.mean(axis=(1, 2)), "top1_AP": curves[:, 0, :].mean(axis=1)}
     for t, theta in enumerate(thresholds):
-        name = f"AP{theta:g}"
-        out[name] = 100.0 * float(curves[:, :, t].mean())
-        out[f"top1_{name}"] = 100.0 * float(curves[:, 0, t].mean())
+        out[f"AP{theta:g}"] = curves[:, :, t].mean(axis=1)
+        out[f"top1_AP{theta:g}"] = curves[:, 0, t]
+    return {name: 100.0 * values for name, values in out.items()}
+
+
+def _summarise(curves: np.ndarray, thresholds: tuple[float, ...]) -> dict[str, Any]:
+    """Mean precision (percent) over scenes, k and θ, for a (S, max_k, T) stack of curves, and each figure's
+    bootstrap 95% interval over scenes (``intervals``; all figures from the same resamples)."""
+    per_scene = per_scene_metrics(curves, thresholds)
+    out: dict[str, Any] = {name: float(values.mean()) for name, values in per_scene.items()}
     out["num_scenes"] = int(curves.shape[0])
+    intervals = bootstrap_means(np.stack(list(per_scene.values()), axis=1))
+    out["intervals"] = {name: iv.to_dict() for name, iv in zip(per_scene, intervals)}
     return out
 
 
@@ -101,8 +112,10 @@ def aggregate_ap(per_scene: Sequence[SceneAP]) -> dict:
     """AP over scenes: AP (mean over scenes, k and θ), AP<θ> per threshold, and the same at k = 1 (Top-1).
 
     Keys: ``AP``, ``AP0.2``, ``AP0.4``, ... , ``top1_AP``, ``top1_AP0.4``, ..., ``num_scenes``,
-    ``precision_at_k`` (the mean curve over scenes, ``[k-1][t]`` in percent), and ``per_category``
-    mapping each category to the scalar keys, averaged over the scenes containing it.
+    ``intervals`` (each figure's bootstrap 95% interval over scenes, ``eval.stats.Interval.to_dict``),
+    ``per_scene`` (each figure per scene, in input order, for paired comparisons), ``precision_at_k`` (the
+    mean curve over scenes, ``[k-1][t]`` in percent), and ``per_category`` mapping each category to the
+    scalar keys and intervals, over the scenes containing it.
     """
     if len(per_scene) == 0:
         raise ValueError("aggregate_ap needs at least one scene")
@@ -113,6 +126,7 @@ def aggregate_ap(per_scene: Sequence[SceneAP]) -> dict:
             raise ValueError("all scenes must share thresholds and max_k")
     stack = np.stack([sc.precision for sc in per_scene])
     result = _summarise(stack, thresholds)
+    result["per_scene"] = {name: v.tolist() for name, v in per_scene_metrics(stack, thresholds).items()}
     result["precision_at_k"] = (100.0 * stack.mean(axis=0)).tolist()  # (max_k, T) mean P@k curves, for plots
     result["thresholds"] = list(thresholds)
     result["max_k"] = int(shape[0])

@@ -1,4 +1,4 @@
-"""The paper's own numbers (DESIGN.md), kept apart so reports can put ours beside them."""
+"""The paper's own numbers (docs/protocols.md), kept apart so reports can put ours beside them."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ TABLE_V: dict[tuple[str, str], tuple[float, float]] = {
 }
 
 METHOD_LABELS: dict[str, str] = {
+    "oracle": "Oracle (privileged ceiling)",
     "diffusion": "Diffusion-Suction", "cao": "Cao et al.", "normal_std": "Normal-STD",
     "dexnet": "Dex-Net 3.0", "random": "Random", "sb3": "PPO (SB3)",
 }

@@ -54,6 +54,14 @@ def require_positive_numbers(obj: Any, names: Iterable[str]) -> None:
         require(ok, type(obj).__name__, f"{name} must be a finite number > 0, got {value!r}")
 
 
+def require_finite_numbers(obj: Any, names: Iterable[str]) -> None:
+    """Each named field of ``obj`` is a finite real (bools, strings, NaN and inf refused): check before comparing."""
+    for name in names:
+        value = getattr(obj, name)
+        ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
+        require(ok, type(obj).__name__, f"{name} must be a finite number, got {value!r}")
+
+
 def lists_to_tuples(value: Any) -> Any:
     """Lists (JSON's only sequence) back to the tuples a frozen, hashable config holds, at any depth."""
     if isinstance(value, (list, tuple)):
@@ -78,7 +86,8 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any], nested: Mapping[str,
     """Rebuild ``cls`` from a stored dict: unknown keys are refused (a renamed or foreign field must not pass
     silently), lists become tuples, and each ``nested`` field given as a dict is rebuilt as its dataclass."""
     unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
-    require(not unknown, cls.__name__, f"unknown keys {unknown}")
+    more = f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""
+    require(not unknown, cls.__name__, f"unknown keys {unknown[:5]}{more}")
     nested = nested or {}
     kwargs = {key: config_from_dict(nested[key], value) if key in nested and isinstance(value, Mapping)
               else lists_to_tuples(value) for key, value in data.items()}

@@ -31,6 +31,7 @@ class Policy(ABC):
     """Policies see only what the env observes (plus camera calibration from ``info``), never ground truth."""
 
     name: str = "policy"
+    obs_mode: str = "pointcloud"  # the env observation mode it needs (parcelpick_env/envs/observation.py)
 
     @abstractmethod
     def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,

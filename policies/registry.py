@@ -15,7 +15,10 @@ _LAZY: dict[str, str] = {
     "cao": "policies.cao.policy:CaoPolicy",
     "random": "policies.random_policy:RandomPolicy",
     "sb3": "policies.sb3.policy:SB3Policy",
+    "oracle": "policies.oracle:OraclePolicy",  # privileged upper bound (reads obs_mode='state_dict')
 }
+# The only policies allowed to declare a privileged obs_mode (ground truth): a ceiling, not a method.
+PRIVILEGED_POLICIES: tuple[str, ...] = ("oracle",)
 _CLASSES: dict[str, type[Policy]] = {}
 
 P = TypeVar("P", bound=type[Policy])
@@ -29,10 +32,29 @@ def register_policy(name: str) -> Callable[[P], P]:
     def wrap(cls: P) -> P:
         if not (isinstance(cls, type) and issubclass(cls, Policy)):
             raise TypeError(f"{cls!r} is not a Policy subclass")
+        _check_obs_mode(name, cls)
         _CLASSES[name] = cls
         return cls
 
     return wrap
+
+
+def obs_mode_of(policy: Policy | type[Policy]) -> str:
+    """The env ``obs_mode`` a policy needs: its ``obs_mode`` attribute, ``"pointcloud"`` when it declares none."""
+    return str(getattr(policy, "obs_mode", "pointcloud"))
+
+
+def _check_obs_mode(name: str, cls: type[Policy]) -> None:
+    """Only PRIVILEGED_POLICIES may read the privileged channel; every policy must name a real mode."""
+    from parcelpick_env.envs.config import OBS_MODES
+    from parcelpick_env.envs.observation import PRIVILEGED_MODES
+
+    mode = obs_mode_of(cls)
+    if mode not in OBS_MODES:
+        raise ValueError(f"policy {name!r} declares obs_mode {mode!r}; choose one of {OBS_MODES}")
+    if mode in PRIVILEGED_MODES and name not in PRIVILEGED_POLICIES:
+        raise ValueError(f"policy {name!r} declares the privileged obs_mode {mode!r}, which only "
+                         f"{PRIVILEGED_POLICIES} may read (ground truth is not a policy input)")
 
 
 def register_lazy(name: str, target: str) -> None:
@@ -63,6 +85,7 @@ def _resolve(name: str) -> type[Policy]:
         raise NotImplementedError(f"policy {name!r} is not implemented yet ({module_name} has no {attr})")
     if not (isinstance(cls, type) and issubclass(cls, Policy)):
         raise TypeError(f"policy {name!r}: {module_name}:{attr} is not a Policy subclass")
+    _check_obs_mode(name, cls)
     _CLASSES[name] = cls
     return cls
 

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from parcelpick_env.assets.generator import MAX_MASS, MIN_MASS, generate_parcel
+from parcelpick_env.assets.generator import (CARTON_SIDE_RANGE, CUP_MASS_LIMIT, GEN3_PAYLOAD, MAX_MASS, MIN_MASS,
+                                             PLANAR_LENGTH, PLANAR_WIDTH, TOOL_ALLOWANCE, TUBE_RADIUS,
+                                             generate_parcel)
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.assets.parcel import CATEGORIES
 
@@ -39,15 +41,26 @@ def test_parcels_are_closed_centred_and_light_enough(category):
 
 
 def test_category_sizes():
-    for asset in _parcels("rectangular"):
-        assert np.all(asset.extents >= 0.05 - 0.025) and np.all(asset.extents <= 0.60 + 0.025)
+    lo, hi = CARTON_SIDE_RANGE
+    for asset in _parcels("rectangular"):  # dents and bulges move a face by up to 12 % of the half side
+        assert np.all(asset.extents >= lo * 0.88 - 1e-6) and np.all(asset.extents <= hi * 1.12 + 1e-6)
     for asset in _parcels("planar"):
         assert 0.005 - 1e-6 <= _centre_thickness(asset.mesh) <= 0.05 + 1e-6
-        assert asset.extents[:2].min() >= 0.10 - 1e-6
+        assert PLANAR_WIDTH[0] - 1e-6 <= asset.extents[:2].min() and asset.extents[:2].max() <= PLANAR_LENGTH[1] + 1e-6
     for asset in _parcels("cylindrical"):
         radius = asset.extents[1:].max() / 2  # axis along body x
-        assert 0.03 - 1e-6 <= radius <= 0.10 + 1e-6
-        assert asset.extents[0] >= 0.1 - 1e-6
+        # the 48-gon's flats sit a little inside the radius
+        assert TUBE_RADIUS[0] - 1e-3 <= radius <= TUBE_RADIUS[2] + 1e-6
+        assert 0.08 - 1e-6 <= asset.extents[0] <= 0.35 + 1e-6
+
+
+def test_masses_respect_the_arm(library):
+    """The Gen3 carries 4 kg mid-range continuous without an end effector; the tool takes its share; the
+    cup's rated pull at the carry's load share bounds it too (the lower wins)."""
+    assert MAX_MASS == pytest.approx(min(GEN3_PAYLOAD - TOOL_ALLOWANCE, CUP_MASS_LIMIT)) and MAX_MASS <= 3.5
+    masses = np.array([a.mass for a in library.train + library.test])
+    assert masses.max() <= MAX_MASS and masses.min() >= MIN_MASS
+    assert masses.max() > 1.5  # heavy parcels exist: the holding physics is exercised
 
 
 def test_cartons_are_dented_not_perfect_boxes():

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, episode_tasks, evaluate_clearance,
-                            format_table, main, summarise)
+from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
+                            evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise)
 from parcelpick_env.camera.config import CameraConfig
 
 # Two parcels, a tiny camera and cloud, three attempts: a few seconds per episode on one core.
@@ -35,6 +35,10 @@ def test_local_and_ray_backends_give_identical_episodes(monkeypatch):
     assert 1 <= ep["attempts"] <= 3 and 0 <= ep["successes"] <= ep["attempts"]
     assert ep["parcels_placed"] >= 1 and ep["parcels_cleared"] == ep["successes"]
     assert sum(ep["outcomes"].values()) == ep["attempts"] and set(ep["outcomes"]) <= set(OUTCOMES)
+    # Every attempt is kept, in order, with how it failed.
+    assert len(ep["attempt_log"]) == ep["attempts"]
+    assert [a["outcome"] for a in ep["attempt_log"]].count("success") == ep["successes"]
+    assert all(set(a) >= {"outcome", "cause", "phase", "link", "condition"} for a in ep["attempt_log"])
     assert ep["seed"] == episode_tasks(ClearanceConfig(**TINY))[0].seed
     assert local["overall"]["attempts"] == ep["attempts"]
 
@@ -81,10 +85,12 @@ def test_summarise_pools_episodes_per_cell_and_overall():
     table = format_table(s)
     lines = table.splitlines()
     assert lines[0] == "| object set | scattered | stacked |"
-    assert "| rectangular | 50.00 / 71.43 | – |" in lines
-    assert "| planar | – | 20.00 / 50.00 |" in lines
+    # Each rate with its bootstrap interval over the cell's episodes: 3/4 and 2/6 successes pool to 5/10; a
+    # resample of the two episodes gives 4/8, 5/10 or 6/12 ... so the interval runs from 2/6 to 3/4.
+    assert "| rectangular | 50.00 [33.33, 75.00] / 71.43 [50.00, 100.00] | – |" in lines
+    assert "| planar | – | 20.00 [20.00, 20.00] / 50.00 [50.00, 50.00] |" in lines  # one episode: no spread
     assert [ln.split(" | ")[0] for ln in lines[2:6]] == ["| rectangular", "| planar", "| cylindrical", "| mixed"]
-    assert "R_grasp 40.00%" in table and "R_object 66.67%" in table and "(6/15 attempts, 6/9 parcels)" in table
+    assert "R_grasp 40.00 [" in table and "R_object 66.67 [" in table and "(6/15 attempts, 6/9 parcels;" in table
     assert "unreachable 4" in table and "invalid_action 0" in table
 
 
@@ -130,3 +136,34 @@ def test_diffusion_replay_shows_the_denoising_trajectory(tmp_path: Path):
     replay = evaluate_clearance(config, progress=False)["episodes"][0]["replay"]
     summary = RrdReader(replay).store().summary()
     assert "/policy/denoising " in summary and "denoise_step" in summary
+
+
+def test_attempt_record_reads_typed_failures_and_the_older_strings():
+    typed = attempt_record({"outcome": "collision", "failure_cause": "free-space: tool_rod",
+                            "failure": {"move": "transfer", "link": "tool_rod", "condition": None, "body": "bin"}})
+    assert (typed["phase"], typed["link"], typed["body"]) == ("transfer", "tool_rod", "bin")
+    legacy = attempt_record({"outcome": "collision", "failure_cause": "free-space: suction_cup"})
+    assert (legacy["phase"], legacy["link"]) == ("free-space", "suction_cup")
+    drop = attempt_record({"outcome": "dropped", "failure_cause": "suction", "failure_phase": "transport",
+                           "failure": None})
+    assert (drop["phase"], drop["condition"]) == ("transport", "suction")
+    assert failure_kind(drop) == "dropped: transport" and failure_detail(legacy) == "collision: free-space (suction_cup)"
+    assert failure_kind(attempt_record({"outcome": "success"})) is None
+
+
+def test_summaries_count_failures_per_cell_and_overall():
+    log = [attempt_record(i) for i in ({"outcome": "collision", "failure_cause": "free-space: tool_rod"},
+                                       {"outcome": "collision", "failure_cause": "approach: suction_cup"},
+                                       {"outcome": "dropped", "failure_cause": "suction", "failure_phase": "lift"},
+                                       {"outcome": "success"})]
+    r = _result("mixed", "stacked", 4, 1, 3, 1, {"success": 1, "collision": 2, "dropped": 1})
+    r.attempt_log = log
+    s = summarise([r, _result("mixed", "scattered", 2, 2, 2, 2, {"success": 2})])
+    cell = s["cells"]["mixed/stacked"]
+    assert cell["failures"] == {"collision: free-space": 1, "collision: approach": 1, "dropped: lift": 1}
+    assert cell["causes"]["dropped: lift (suction)"] == 1
+    assert s["overall"]["failures"] == cell["failures"] and s["cells"]["mixed/scattered"]["failures"] == {}
+    # The overall interval resamples within cells: both cells keep one episode, so it has no spread.
+    iv = s["overall"]["intervals"]["R_grasp"]
+    assert iv["low"] == iv["high"] == pytest.approx(50.0) and iv["n"] == 2
+    assert "Failures: " in format_table(s) and "collision: free-space (tool_rod) 1" in format_table(s)

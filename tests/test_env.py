@@ -11,12 +11,13 @@ from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.envs.config import EnvConfig, GraspConfig
 from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
 from parcelpick_env.envs.grasp import CONDITIONS, suction_ring_ratios
+from parcelpick_env.suction.cup import CupSpec
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 from parcelpick_env.envs.scripted import top_patch_action
 
 SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256)
 LIGHT_BOX = BoxScene([PlacedBox((0.30, 0.20, 0.10), 0.5)])
-LONG_HEAVY_BOX = BoxScene([PlacedBox((0.60, 0.15, 0.10), 0.8)])  # 1.7 N m at 22 cm: beyond the 20 mm cup's 0.98
+LONG_HEAVY_BOX = BoxScene([PlacedBox((0.60, 0.15, 0.10), 0.8)])  # 1.7 N m at 22 cm: beyond the 25 mm cup's 0.87
 THREE_BOXES = BoxScene([PlacedBox((0.20, 0.15, 0.10), 0.4, (-0.17, 0.06), 0.3),
                         PlacedBox((0.25, 0.20, 0.06), 0.8, (0.15, -0.08), -0.2),
                         PlacedBox((0.15, 0.15, 0.12), 0.3, (0.02, 0.15))])
@@ -52,7 +53,9 @@ def test_config_rejects_bad_values():
     with pytest.raises(ValueError):
         GraspConfig(seal_threshold=1.5)
     with pytest.raises(ValueError):
-        GraspConfig(vacuum_kpa=-1.0)
+        CupSpec(vacuum_kpa=-1.0)
+    with pytest.raises(ValueError):
+        CupSpec(safety_factor=0.9)
 
 
 def test_env_checkers_pass():
@@ -226,7 +229,7 @@ def test_suction_ring_conditions_known_values():
 
 
 def test_material_limit_matches_the_analytic_boundary():
-    """1 kg box, top-down: sqrt(2) m g d <= pi r k holds up to d* (7.1 cm for the env's 20 mm cup)."""
+    """1 kg box, top-down: sqrt(2) m g d <= pi r k holds up to d* (8.8 cm for the env's 25 mm cup)."""
     env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0)]))
     try:
         suction = env.config.suction

@@ -98,3 +98,15 @@ def test_mismatched_lengths_and_nan_raise():
         scene_ap(np.array([np.nan]), np.ones(1))
     with pytest.raises(ValueError):
         select_predictions(np.zeros((2, 3)), np.zeros((2, 3)), np.ones(2), np.zeros(3), per_object=10)
+
+
+def test_every_ap_figure_carries_a_bootstrap_interval_over_scenes():
+    rng = np.random.default_rng(0)
+    scenes = [scene_ap(rng.random(20), rng.random(20), categories=["planar"] * 20) for _ in range(30)]
+    result = aggregate_ap(scenes)
+    for key in ("AP", "AP0.4", "AP0.8", "top1_AP", "top1_AP0.8"):
+        iv = result["intervals"][key]
+        assert iv["low"] <= result[key] <= iv["high"] and iv["n"] == 30 and iv["estimate"] == pytest.approx(result[key])
+        assert np.mean(result["per_scene"][key]) == pytest.approx(result[key])  # the unit the interval resamples
+    assert result["intervals"]["AP"]["high"] - result["intervals"]["AP"]["low"] > 0
+    assert result["per_category"]["planar"]["intervals"]["AP"] == result["intervals"]["AP"]  # the same 30 scenes

@@ -133,7 +133,8 @@ def test_config_validation():
         NormalStdConfig(workspace=((0, 0, 0), (1, -1, 1)))
     assert NormalStdConfig(downsample=2).effective_knn == 56  # KNN 224 over the same surface patch
     # the bin's inner floor up to 1 m (piles may top the rim): the env's info['workspace']
-    np.testing.assert_allclose(NormalStdConfig.for_bin(BinSpec()).workspace, ((-0.35, -0.25, 0.0), (0.35, 0.25, 1.0)))
+    spec = BinSpec(inner_size=(0.70, 0.50))
+    np.testing.assert_allclose(NormalStdConfig.for_bin(spec).workspace, ((-0.35, -0.25, 0.0), (0.35, 0.25, 1.0)))
     with pytest.raises(ValueError):
         NormalStdConfig(floor_clearance=-0.001)
 

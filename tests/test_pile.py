@@ -1,4 +1,5 @@
-"""Simulator and pile building: mesh-frame poses, determinism, split hygiene, validation, rest, layouts."""
+"""Simulator and pile building: mesh-frame poses, determinism, split hygiene, validation, rest, layouts,
+what a request keeps, the one definition of inside the bin, and the arm's reach over the tote."""
 
 from __future__ import annotations
 
@@ -8,8 +9,10 @@ import pytest
 import shapely
 from scipy.spatial.transform import Rotation
 
+from parcelpick_env.assets.library import OBJECT_SETS
+from parcelpick_env.robot.arm import ArmConfig, Gen3Arm, reachability
 from parcelpick_env.scene.config import PileConfig
-from parcelpick_env.scene.pile import build_pile, refresh_scene_poses
+from parcelpick_env.scene.pile import SCATTER_CAPACITY, build_pile, refresh_scene_poses
 from parcelpick_env.scene.scene import BinSpec
 from parcelpick_env.sim.config import SimConfig
 from parcelpick_env.sim.simulator import Simulator
@@ -80,7 +83,7 @@ def test_simulator_rejects_bad_input_and_cleans_up(library):
 @pytest.mark.parametrize("kwargs", [
     dict(num_parcels=0), dict(num_parcels=51), dict(object_set="spheres"), dict(layout="heap"),
     dict(split="validation"), dict(friction_range=(0.8, 0.2)), dict(friction_range=(-0.1, 0.5)),
-    dict(drop_height=-1.0),
+    dict(drop_height=-1.0), dict(chute_height=0.2), dict(stack_tilt_deg=-5.0), dict(scatter_yaw_jitter_deg=90.0),
 ])
 def test_pile_config_validation(kwargs):
     with pytest.raises(ValueError):
@@ -118,16 +121,78 @@ def test_split_scenes_use_only_their_split(sim, library, split):
 def test_stacked_pile_is_inside_the_bin_and_at_rest(sim, library):
     config = PileConfig(**TINY)
     scene = build_pile(sim, config, seed=1, library=library)
-    assert scene.meta["at_rest"] and sim.is_at_rest([p.body_id for p in scene.parcels])
+    meta = scene.meta
+    assert meta["at_rest"]
     assert [p.object_id for p in scene.parcels] == list(range(len(scene.parcels)))
-    assert len(scene.parcels) + len(scene.meta["removed_outside"]) == config.num_parcels
-    half = np.asarray(config.bin.inner_size) / 2
-    coms = scene.world_coms()
-    assert np.all(np.abs(coms[:, :2]) < half + 0.005) and np.all(coms[:, 2] > 0)
+    assert meta["placed"] == len(scene.parcels)
+    assert meta["requested"] == meta["placed"] + meta["skipped"] + meta["lost"] == config.num_parcels
+    assert config.bin.contains(scene.world_coms()).all()
     for p in scene.parcels:  # scene poses are the simulator's mesh-frame poses
         pos, orn = sim.body_pose(p.body_id)
         assert np.array_equal(pos, p.position) and np.array_equal(orn, p.orientation)
         assert config.friction_range[0] <= p.friction <= config.friction_range[1]
+    sim.step(40)  # at rest: another sixth of a second under nominal physics moves nothing visibly
+    moved = [np.linalg.norm(sim.body_pose(p.body_id)[0] - p.position) for p in scene.parcels]
+    assert max(moved) < 0.002
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_30_parcel_stacked_request_keeps_at_least_28(sim, library, seed):
+    scene = build_pile(sim, PileConfig(num_parcels=30, layout="stacked", object_set="mixed"), seed, library)
+    assert scene.meta["placed"] == len(scene.parcels) >= 28
+    assert scene.meta["skipped"] == 0 and scene.meta["lost"] == 30 - len(scene.parcels)
+    assert scene.bin.contains(scene.world_coms()).all()
+
+
+@pytest.mark.parametrize("object_set", OBJECT_SETS)
+def test_scattered_places_every_parcel_up_to_the_capacity(sim, library, object_set):
+    for seed in range(2):
+        config = PileConfig(num_parcels=SCATTER_CAPACITY, layout="scattered", object_set=object_set)
+        scene = build_pile(sim, config, seed, library)
+        assert len(scene.parcels) == SCATTER_CAPACITY, scene.meta
+        assert scene.meta["skipped"] == scene.meta["lost"] == 0
+
+
+def test_scattered_beyond_capacity_reports_the_shortfall(sim, library):
+    scene = build_pile(sim, PileConfig(num_parcels=20, layout="scattered", object_set="rectangular"), 0, library)
+    meta = scene.meta
+    assert meta["skipped"] > 0 and len(scene.parcels) >= SCATTER_CAPACITY
+    assert meta["requested"] == 20 == meta["placed"] + meta["skipped"] + meta["lost"]
+
+
+def test_inside_the_bin_is_one_definition():
+    spec = BinSpec()
+    hx, hy = np.asarray(spec.inner_size) / 2
+    coms = np.array([
+        [0.0, 0.0, 0.05],  # on the floor
+        [hx - 0.001, hy - 0.001, 0.4],  # in a corner, heaped above the rim
+        [hx + spec.wall_thickness / 2, 0.0, spec.wall_height + 0.02],  # balancing on the wall top
+        [0.0, -hy - 0.05, -spec.wall_thickness + 0.003],  # fell out, on the ground beside the tote
+        [0.0, 0.0, -0.05],  # below the floor
+    ])
+    np.testing.assert_array_equal(spec.contains(coms), [True, True, False, False, False])
+
+
+def _tote_grid(spec: BinSpec, counts: tuple[int, int, int], top: float, margin: float) -> np.ndarray:
+    """Points over the inner floor (``margin`` from the walls) from the floor up to ``top``."""
+    (x0, y0, _), (x1, y1, _) = spec.workspace(margin=-margin)
+    axes = np.linspace(x0, x1, counts[0]), np.linspace(y0, y1, counts[1]), spec.floor_z + np.linspace(0, top, counts[2])
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_arm_reaches_the_tote_top_down():
+    """The mount reaches the tote's floor and the pile's height range top-down (coarse grid; the
+    full 12 x 9 x 6 grid figure is in docs/piles.md). The margin is half the smallest parcel side:
+    no top face has its centre closer to a wall."""
+    spec = BinSpec()
+    points = _tote_grid(spec, (7, 5, 4), top=0.45, margin=0.025)
+    client = pb.connect(pb.DIRECT)
+    try:
+        arm = Gen3Arm(client, ArmConfig())
+        reached = reachability(arm, points)
+    finally:
+        pb.disconnect(client)
+    assert reached.mean() >= 0.99, points[~reached]
 
 
 def test_scattered_footprints_do_not_overlap(sim, library):

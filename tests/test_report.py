@@ -9,11 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.clearance import EpisodeResult, summarise
+from eval.clearance import EpisodeResult, attempt_record, summarise
 from eval.metrics import aggregate_ap, scene_ap
 from eval.paper_results import TABLE_II_TOP50, TABLE_V
-from eval.report import (TRAINED_VARIANTS, ReportConfig, ablation_table, differences, evaluate_ablations,
-                         evaluate_policy, main, table_ii, write_report)
+from eval.stats import format_interval
+from eval.report import (TRAINED_VARIANTS, ReportConfig, ablation_table, compare, differences, evaluate_ablations,
+                         evaluate_policy, failure_table, main, table_ii, write_report)
+from eval.stats import TIE
 from policies import registry
 from policies.base import Policy
 
@@ -28,12 +30,16 @@ def _ap(qualities_per_scene: list[list[float]]) -> dict:
 
 
 def _clearance(successes: int, attempts: int, cleared: int, placed: int) -> dict:
+    log = [attempt_record({"outcome": "success"})] * successes + [
+        attempt_record({"outcome": "collision", "failure_cause": "free-space: tool_rod"})] * (attempts - successes)
     episode = EpisodeResult(objects="rectangular", layout="scattered", episode=0, seed=1, attempts=attempts,
                             successes=successes, parcels_placed=placed, parcels_cleared=cleared,
                             reason="consecutive_failures",
-                            outcomes={"success": successes, "no_seal": attempts - successes},
-                            replay=None, wall_time_s=0.0)
-    return summarise([episode])
+                            outcomes={"success": successes, "collision": attempts - successes},
+                            replay=None, wall_time_s=0.0, attempt_log=log)
+    summary = summarise([episode])
+    summary["episodes"] = [asdict(episode)]
+    return summary
 
 
 def _entry(name: str, label: str, ap=None, clearance=None, status="ok", reason=None, clearance_error=None) -> dict:
@@ -67,17 +73,20 @@ def test_report_has_our_and_paper_numbers_and_writes_pngs(report, tmp_path: Path
     md = paths["markdown"].read_text()
     ours = report["policies"]["diffusion"]["ap"]
     # Table II: ours beside the paper's, Top-50 and Top-1.
-    assert f"{ours['AP']:.2f} / 94.42" in md and f"{ours['top1_AP']:.2f} / 98.00" in md
-    assert f"{report['policies']['cao']['ap']['AP0.8']:.2f} / 28.29" in md
+    # Every figure of ours carries its bootstrap interval over scenes: 'ours [low, high] / paper'.
+    assert f"{format_interval(ours['intervals']['AP'])} / 94.42" in md
+    assert f"{format_interval(ours['intervals']['top1_AP'])} / 98.00" in md
+    assert f"{format_interval(report['policies']['cao']['ap']['intervals']['AP0.8'])} / 28.29" in md
     assert "Dex-Net 3.0 (not available: FileNotFoundError: no model at x.pt)" in md
     assert "– / 9.56" in md  # the paper's Dex-Net number stays beside the missing run
     # Table V: our pooled rates beside the paper's robot; outcome counts.
-    assert "| rectangular | 75.00 / 75.00 | 96.43 / 100.00 |" in md
+    assert "| rectangular | 75.00 [75.00, 75.00] / 75.00 [75.00, 75.00] | 96.43 / 100.00 |" in md  # one episode
     assert "| Diffusion-Suction | 4 | 3 |" in md and "failed: RuntimeError: boom" in md
     # Ablations: the measured row with the paper's, every untrained variant with its command.
     assert "28.10" in md and "not trained" in md and "train --no-normals" in md and "train --encoder pointnet" in md
     # The gaps are stated, with sign and direction.
-    assert f"Diffusion-Suction Top-50 AP: ours {ours['AP']:.2f}, paper 94.42" in md and "below the paper" in md
+    assert f"Diffusion-Suction Top-50 AP: ours {format_interval(ours['intervals']['AP'])}, paper 94.42" in md
+    assert "below the paper" in md
     # Plots exist, are PNGs, and the markdown links them relative to itself.
     for key, link in (("precision_at_k", "figs/precision_at_k.png"), ("clearance", "figs/clearance.png")):
         assert paths[key].read_bytes()[:8] == PNG_MAGIC and f"]({link})" in md
@@ -89,12 +98,14 @@ def test_report_has_our_and_paper_numbers_and_writes_pngs(report, tmp_path: Path
 def test_differences_are_signed_and_rank_is_checked(report):
     lines = differences(report)
     cao = report["policies"]["cao"]["ap"]["AP"]
-    assert f"- Cao et al. Top-50 AP: ours {cao:.2f}, paper 62.81 ({cao - 62.81:+.2f} points" in "\n".join(lines)
+    cao_iv = format_interval(report["policies"]["cao"]["ap"]["intervals"]["AP"])
+    assert f"- Cao et al. Top-50 AP: ours {cao_iv}, paper 62.81 ({cao - 62.81:+.2f} points" in "\n".join(lines)
     ranking = next(line for line in lines if "ranking" in line)
     ours_first = report["policies"]["diffusion"]["ap"]["AP"] > cao
     assert ("NOT the same" in ranking) != ours_first  # the paper ranks Diffusion-Suction above Cao et al.
     paper_grasp = TABLE_V[("rectangular", "scattered")][0]
-    assert any(f"R_grasp (simulation vs real robot): ours 75.00, paper {paper_grasp:.2f}" in line for line in lines)
+    assert any(f"R_grasp (simulation vs real robot): ours 75.00 [75.00, 75.00], paper {paper_grasp:.2f}" in line
+               for line in lines)
     assert any("Dex-Net 3.0: no AP of ours" in line for line in lines)
 
 
@@ -189,7 +200,7 @@ def test_cli_end_to_end_on_one_stored_scene(one_scene: Path, tmp_path: Path, cap
     dump = json.loads(out.with_suffix(".json").read_text())
     random_ap = dump["policies"]["random"]["ap"]
     assert random_ap["num_scenes"] == 1 and len(random_ap["precision_at_k"]) == random_ap["max_k"]
-    assert f"| Random | {random_ap['AP']:.2f} / – |" in md
+    assert f"| Random | {format_interval(random_ap['intervals']['AP'])} / – |" in md
     assert "nope (not available: ValueError: unknown policy 'nope'" in md
     assert (out.parent / "figures" / "precision_at_k.png").read_bytes()[:8] == PNG_MAGIC
     assert "Skipped (--skip-clearance)." in md and "Skipped (--skip-ablations)." in md
@@ -231,3 +242,43 @@ def test_step_count_variants_are_the_inference_rows_when_training_never_samples(
     assert rows["steps5"]["command"] is None and "map_loss_weight = 0" in rows["steps5"]["reason"]
     assert rows["steps10"]["status"] == "not trained"  # no inference row at 10 steps to stand in for it
     assert "map_loss_weight = 0" in ablation_table(list(rows.values()))
+
+
+def _scored(per_scene_ap: np.ndarray) -> dict:
+    """An AP result whose scene k has (close to) the given AP, with the scene indices evaluate_ap records."""
+    result = _ap([[1.0] * int(round(a * 50 / 100)) + [0.0] * (50 - int(round(a * 50 / 100))) for a in per_scene_ap])
+    result["scenes"] = [{"index": i} for i in range(len(per_scene_ap))]
+    return result
+
+
+def test_paired_comparison_calls_a_method_ahead_only_when_its_interval_excludes_zero():
+    rng = np.random.default_rng(0)
+    base = rng.uniform(10, 60, 40)
+    strong = _entry("diffusion", "Diffusion-Suction", _scored(np.clip(base + 8, 0, 100)), _clearance(6, 10, 6, 8))
+    weak = _entry("cao", "Cao et al.", _scored(base), _clearance(3, 10, 3, 8))
+    ahead = compare(strong, weak)
+    assert ahead["AP"]["low"] > 0 and ahead["AP"]["verdict"] == "Diffusion-Suction ahead"
+    assert compare(weak, strong)["AP"]["verdict"] == "Diffusion-Suction ahead"
+    itself = compare(strong, strong)
+    assert all(itself[k]["verdict"] == TIE for k in ("AP", "R_grasp", "R_object"))
+    assert ahead["R_grasp"]["estimate"] == pytest.approx(30.0)  # 6/10 - 3/10 on the one shared episode
+    lines = differences({"policies": {"diffusion": strong, "cao": weak}, "ablations": []})
+    assert any("Diffusion-Suction over Cao et al. resolved (paired difference" in line for line in lines)
+    tie = differences({"policies": {"diffusion": strong, "cao": {**strong, "name": "cao", "label": "Cao et al."}},
+                       "ablations": []})
+    assert any("over" in line and "NOT resolved" in line for line in tie)
+
+
+def test_failure_anatomy_table_figure_and_provenance_are_in_the_report(report, tmp_path: Path):
+    from policies.provenance import shipped_provenance
+
+    table = failure_table(report["policies"], ("rectangular",), ("scattered",))
+    assert "| Diffusion-Suction | collision: free-space | 1 | 1 |" in table
+    report = {**report, "provenance": shipped_provenance()}
+    paths = write_report(report, tmp_path / "RESULTS.md", tmp_path / "figs")
+    md = paths["markdown"].read_text()
+    assert paths["failures"].read_bytes()[:8] == PNG_MAGIC and "](figs/failures.png)" in md
+    assert "### Failure anatomy" in md and "collision: free-space (tool_rod) × 1" in md
+    assert "## Checkpoint provenance" in md and "not recorded" in md
+    assert "`python -m policies.cao.train --data data/baselines_train" in md
+    assert "## Paired comparisons with Diffusion-Suction" in md and "Diffusion-Suction − Cao et al." in md

@@ -1,4 +1,4 @@
-"""Suction scorer: DESIGN.md's known-answer table, collision, visibility and input validation."""
+"""Suction scorer: the known answers of docs/labels.md, collision, visibility and input validation."""
 
 from __future__ import annotations
 

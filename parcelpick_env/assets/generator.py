@@ -1,4 +1,4 @@
-"""Procedural parcels in the paper's three shape clusters (DESIGN.md, 'Scenes').
+"""Procedural parcels in the paper's three shape clusters (docs/piles.md).
 
 Every parcel starts from a watertight, evenly gridded primitive (a box with an ``nx x ny x nz``
 grid on its faces, or a capped cylinder) whose vertices are then displaced by smooth fields:
@@ -15,11 +15,20 @@ import numpy as np
 import trimesh
 
 from parcelpick_env.assets.parcel import CATEGORIES, ParcelAsset
+from parcelpick_env.suction.config import CELL_CUP_RADIUS, SuctionConfig
+from parcelpick_env.suction.cup import CARRY_LOAD_TARGET, CupSpec
 
-MIN_MASS, MAX_MASS = 0.05, 5.0  # kg, clipped after the density-based estimate
+# Two limits bound a parcel's mass (docs/piles.md, "Masses"). The arm: Kinova's Gen3 user guide rates 4 kg
+# mid-range continuous without an end effector, and the suction tool (flange, rod, bellows cup, hose) is
+# allowed 0.5 kg of it. The cup: its rated pull V = dP0 pi r^2 / S at a perfect seal, of which a parcel
+# hanging still may use the carrying load share (CARRY_LOAD_TARGET), so the carry keeps the same margin.
+GEN3_PAYLOAD = 4.0  # kg, mid-range continuous, no end effector
+TOOL_ALLOWANCE = 0.5  # kg, the suction tool's share of the payload
+CUP_MASS_LIMIT = CARRY_LOAD_TARGET * CupSpec().rated_force(CELL_CUP_RADIUS) / SuctionConfig().gravity  # 2.31 kg
+MIN_MASS, MAX_MASS = 0.05, min(GEN3_PAYLOAD - TOOL_ALLOWANCE, CUP_MASS_LIMIT)  # kg, clipped after the density estimate
 
 # Effective densities (kg/m^3) of a whole parcel including its air: cartons are mostly empty.
-_DENSITY = {"rectangular": (60.0, 350.0), "planar": (150.0, 600.0), "cylindrical": (120.0, 500.0)}
+_DENSITY = {"rectangular": (80.0, 800.0), "planar": (150.0, 600.0), "cylindrical": (120.0, 500.0)}
 
 
 def _grid_box(counts: tuple[int, int, int]) -> trimesh.Trimesh:
@@ -65,9 +74,14 @@ def _smooth_field(uv: np.ndarray, rng: np.random.Generator, n_bumps: int, sigma:
     return (amp * np.exp(-d2 / (2 * sig**2))).sum(-1)
 
 
+CARTON_SIDE_RANGE = (0.05, 0.25)  # m: a small-parcel cell's cartons (docs/piles.md)
+
+
 def _sample_carton_side(rng: np.random.Generator) -> float:
-    """5-60 cm, most between 10 and 35 cm (peaked near 18 cm, like e-commerce cartons)."""
-    return float(rng.triangular(0.10, 0.18, 0.35) if rng.random() < 0.85 else rng.uniform(0.05, 0.60))
+    """5-25 cm, most between 7 and 15 cm (peaked near 8 cm): the small cartons of a smalls induction
+    cell sized for the Gen3 and a 0.70 x 0.50 m tote (docs/piles.md)."""
+    lo, hi = CARTON_SIDE_RANGE
+    return float(rng.triangular(lo, 0.08, 0.18) if rng.random() < 0.85 else rng.uniform(lo, hi))
 
 
 def _rectangular(rng: np.random.Generator) -> trimesh.Trimesh:
@@ -94,11 +108,14 @@ def _rectangular(rng: np.random.Generator) -> trimesh.Trimesh:
     return trimesh.Trimesh(verts, mesh.faces, process=False)
 
 
+PLANAR_LENGTH, PLANAR_WIDTH = (0.10, 0.26), (0.08, 0.18)  # m: envelope and mailer formats (docs/piles.md)
+
+
 def _planar(rng: np.random.Generator) -> trimesh.Trimesh:
     kind = rng.choice(["envelope", "mailer", "polybag"])
     thickness = {"envelope": (0.005, 0.015), "mailer": (0.01, 0.03), "polybag": (0.02, 0.05)}[kind]
     t = float(rng.uniform(*thickness))
-    lx, ly = sorted([rng.uniform(0.15, 0.45), rng.uniform(0.10, 0.35)], reverse=True)
+    lx, ly = sorted([rng.uniform(*PLANAR_LENGTH), rng.uniform(*PLANAR_WIDTH)], reverse=True)
     counts = (int(np.clip(round(lx / 0.02), 6, 20)), int(np.clip(round(ly / 0.02), 5, 16)), 2)
     mesh = _grid_box(counts)
     q = mesh.vertices.copy()
@@ -126,12 +143,18 @@ def _planar(rng: np.random.Generator) -> trimesh.Trimesh:
     return trimesh.Trimesh(verts, mesh.faces, process=False)
 
 
+# m: (min, mode, max) tube radius. Mailing tubes of 70-140 mm diameter, most near 80 mm: the 40 mm bellows
+# cup (suction/config.CELL_CUP_RADIUS) seals a crown only from R = 29 mm and with a usable margin (seal
+# >= 0.3) from R = 34 mm, so thinner tubes go to the manual exception lane (docs/piles.md)
+TUBE_RADIUS = (0.035, 0.04, 0.07)
+
+
 def _cylindrical(rng: np.random.Generator) -> trimesh.Trimesh:
-    radius = float(rng.uniform(0.03, 0.10))
+    radius = float(rng.triangular(*TUBE_RADIUS))  # most tubes are thin; fat rolls are rare
     if rng.random() < 0.6:  # mailing tube: long and thin
-        length = float(rng.uniform(max(0.2, 4 * radius), 0.6))  # 60 cm at most, like cartons
+        length = float(rng.uniform(max(0.15, 4 * radius), 0.35))  # 35 cm at most: lies flat in the tote
     else:  # roll: short and fat
-        length = float(rng.uniform(max(0.1, 1.2 * radius), 0.35))
+        length = float(rng.uniform(max(0.08, 1.2 * radius), 0.20))
     mesh = trimesh.creation.cylinder(radius=radius, height=length, sections=48)
     # Lay the axis along body x so the flat-side-down pose is the natural one (z is the short side).
     mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))

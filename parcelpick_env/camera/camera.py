@@ -2,8 +2,9 @@
 
 Rendering prefers pybullet's EGL plugin (hardware or Mesa OpenGL, fast), which the Simulator loads
 when its client starts (``SimConfig.egl_rendering``: the plugin only sees shapes created after
-it), and falls back to the TinyRenderer (software, slower; its image sits about half a pixel
-lower) with one logged warning per process when the simulator has no EGL. The
+it; ``sim/egl.py`` keeps every EGL client of the process valid), and falls back to the TinyRenderer
+(software, slower; its image sits about half a pixel lower) with one logged warning per process when
+the simulator has no EGL. A closed or stale simulator is refused with an error, never rendered. The
 OpenGL depth buffer is converted to metric z-depth, sensor effects (Gaussian z-noise, dropouts)
 are drawn from the caller's generator, and every valid pixel is back-projected with the OpenCV
 pinhole model. Normals come from Open3D's KNN estimate (or the faster image-window PCA in
@@ -74,6 +75,10 @@ class Camera:
 
     def _render(self, sim: Simulator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         cfg = self.config
+        if sim.closed:
+            raise RuntimeError("Camera: cannot render a closed Simulator")
+        if sim.egl_enabled and not sim.egl_current:  # never render from a stale EGL client (blank images)
+            raise RuntimeError("Camera: this Simulator's EGL renderer is no longer valid; make a new Simulator")
         use_egl = cfg.renderer in ("auto", "egl") and sim.egl_enabled
         if cfg.renderer in ("auto", "egl") and not use_egl and not _WARNED["tiny_fallback"]:
             log.warning("EGL rendering is not enabled on this simulator; using pybullet's TinyRenderer (slower)")

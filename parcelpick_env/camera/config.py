@@ -7,9 +7,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from parcelpick_env.config_checks import require_int
 from parcelpick_env.scene.scene import BinSpec
 
 RENDERERS: tuple[str, ...] = ("auto", "egl", "tiny")
+MIN_IMAGE_SIDE, MAX_IMAGE_SIDE = 8, 4096  # pixels; real 3-D cameras top out near 2k x 1.5k
 NORMAL_METHODS: tuple[str, ...] = ("open3d", "organized")
 
 
@@ -36,8 +38,8 @@ class CameraConfig:
     normal_method: str = "open3d"  # or "organized": image-window PCA, ~4x faster (camera/normals.py)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.width, int) and isinstance(self.height, int)) or self.width < 8 or self.height < 8:
-            raise ValueError(f"image size must be ints >= 8, got {self.width}x{self.height}")
+        for name in ("width", "height"):  # bounded: a 100000 x 100000 frame would be ~100 GB of buffers
+            require_int("CameraConfig", name, getattr(self, name), lo=MIN_IMAGE_SIDE, hi=MAX_IMAGE_SIDE)
         if len(self.position) != 3 or not np.all(np.isfinite(self.position)):
             raise ValueError(f"position must be 3 finite numbers, got {self.position}")
         if not 1.0 <= self.fov_y_deg <= 150.0:

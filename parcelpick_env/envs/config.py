@@ -8,6 +8,7 @@ of the Dex-Net 3.0 holding check come from ``suction`` (one definition shared wi
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -18,50 +19,61 @@ from parcelpick_env.robot.arm import ArmConfig
 from parcelpick_env.scene.config import check_pile_fields
 from parcelpick_env.scene.scene import BinSpec
 from parcelpick_env.sim.config import SimConfig
-from parcelpick_env.suction.config import SuctionConfig
+from parcelpick_env.suction.config import CELL_CUP_RADIUS, SuctionConfig
+from parcelpick_env.suction.cup import CARRY_LOAD_TARGET, CupSpec
 
 ACTION_MODES: tuple[str, ...] = ("pose", "pixel")
-ENV_CUP_RADIUS = 0.020  # m; see EnvConfig.suction
+# What the env observes (envs/observation.py): the camera cloud and images, the images only, or the
+# privileged ground truth (state_dict, for the oracle and state-based RL only).
+OBS_MODES: tuple[str, ...] = ("pointcloud", "rgbd", "state_dict")
+ENV_CUP_RADIUS = CELL_CUP_RADIUS  # m: the 40 mm bellows cup (suction/config.py, docs/cell.md); see EnvConfig.suction
 
 
 @dataclass(frozen=True)
 class GraspConfig:
-    """The physical pick (DESIGN.md, 'Physical grasp check inside the environment')."""
+    """The physical pick (docs/cell.md; moves in ``grasp.py``, the cup's holding model in ``suction/cup.py``)."""
 
-    seal_threshold: float = 0.5  # S_seal at the actual contact below this holds nothing
-    vacuum_kpa: float = 60.0  # dP; V = dP * pi * r^2 (about 19 N at r = 10 mm)
-    cup_friction: float = 0.5  # mu of the cup lip on parcel surfaces
-    violation_steps: int = 3  # a wrench violation lasting this many carry steps breaks the seal
+    cup: CupSpec = field(default_factory=CupSpec)  # vacuum, lip friction, hold-break and strike rules
+    # contact seal quality below this holds nothing: the lip leaks so much that the ejector builds less than
+    # 30% of its vacuum (CupSpec's leakage law, 17.6 kPa at 0.2); above it the leak-reduced vacuum decides
+    seal_threshold: float = 0.2
     carry_dt: float = 1.0 / 60.0  # s, physics step while lifting and carrying (the pile sits still)
     carry_solver_iterations: int = 20
+    carry_load_target: float = CARRY_LOAD_TARGET  # the carry is timed so no predicted ring load exceeds this share of capacity
+    min_carry_acceleration: float = 0.1  # m/s^2: floor of that timing (a parcel loaded past the target still moves)
+    carry_speed: float = 0.5  # m/s peak tool speed while carrying
     seal_dwell: float = 0.05  # s holding still after contact while the vacuum builds (not checked)
     pregrasp_distance: float = 0.04  # m along n above the target where the guarded approach starts
     overshoot: float = 0.02  # m beyond the target along -n where the approach gives up (no_contact)
     approach_speed: float = 0.15  # m/s peak tool speed on the guarded approach
-    lift_speed: float = 0.3  # m/s peak tool speed on the vertical lift
-    clearance: float = 0.05  # m the carried parcel must clear above the bin rim
-    hover_clearance: float = 0.08  # m above the rim for the hover point before descending
-    ready_height: float = 0.60  # m above the bin floor: the cup above the bin centre, clear of most piles
-    drop_zone: tuple[float, float, float] = (0.50, -0.50, 0.45)  # tool-tip target outside the bin
-    control_dt_free: float = 1.0 / 30.0  # s between checked waypoints of free-space moves
+    touch_force: float = 1.0  # N of cup contact that ends the guarded approach (the lip is on the surface)
+    clearance: float = 0.05  # m the carried parcel's underside keeps above the pile top and the bin rim
+    min_lift: float = 0.05  # m the lift rises at least
+    hover_clearance: float = 0.05  # m above the highest obstacle near the pick for the hover point
+    hover_corridor: float = 0.08  # m: obstacles whose footprint comes this close to the pick set the hover height
+    ready_height: float = 0.60  # m above the bin floor: the cup above the bin centre, seeds IK
+    drop_zone: tuple[float, float, float] = (0.50, -0.50, 0.45)  # tool-tip target outside the bin (z: at least)
+    control_dt_free: float = 1.0 / 30.0  # s between control waypoints of free-space moves
     max_post_settle_steps: int = 240  # cap on settling the pile after an attempt
     trace_interval: float = 1.0 / 15.0  # s of simulated time between arm/parcel poses kept for replays
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.seal_threshold <= 1.0:
-            raise ValueError(f"seal_threshold must be in [0, 1], got {self.seal_threshold}")
-        require_positive_numbers(self, ("vacuum_kpa", "cup_friction", "pregrasp_distance", "overshoot",
-                                        "approach_speed", "lift_speed", "clearance", "hover_clearance",
-                                        "control_dt_free", "trace_interval", "seal_dwell", "carry_dt", "ready_height"))
+        if isinstance(self.cup, dict):  # a stored config (dataclasses.asdict) nests it as a dict
+            object.__setattr__(self, "cup", CupSpec(**self.cup))
+        require(isinstance(self.cup, CupSpec), "GraspConfig", f"cup must be a CupSpec, got {type(self.cup).__name__}")
+        require(0.0 <= self.seal_threshold <= 1.0, "GraspConfig",
+                f"seal_threshold must be in [0, 1], got {self.seal_threshold}")
+        require_positive_numbers(self, ("pregrasp_distance", "overshoot", "approach_speed", "touch_force", "clearance",
+                                        "hover_clearance", "hover_corridor", "control_dt_free", "trace_interval",
+                                        "seal_dwell", "carry_dt", "ready_height", "carry_load_target",
+                                        "min_carry_acceleration", "carry_speed", "min_lift"))
         require(self.carry_dt <= 0.05, "GraspConfig", f"carry_dt must be <= 0.05 s, got {self.carry_dt}")
-        require_positive_ints(self, ("carry_solver_iterations", "violation_steps"))
+        require(self.carry_load_target < 1.0, "GraspConfig",
+                f"carry_load_target must be < 1 (a share of capacity), got {self.carry_load_target}")
+        require_positive_ints(self, ("carry_solver_iterations",))
         require_int("GraspConfig", "max_post_settle_steps", self.max_post_settle_steps, lo=0)
         if len(self.drop_zone) != 3 or not all(math.isfinite(v) for v in self.drop_zone):
             raise ValueError(f"drop_zone must be 3 finite numbers, got {self.drop_zone}")
-
-    def vacuum_force(self, cup_radius: float) -> float:
-        """V = dP * pi * r^2, newtons."""
-        return self.vacuum_kpa * 1e3 * math.pi * cup_radius**2
 
 
 @dataclass(frozen=True)
@@ -77,13 +89,16 @@ class EnvConfig:
     num_parcels: int = 10
     split: str = "train"
     action_mode: str = "pose"
+    obs_mode: str = "pointcloud"  # one of OBS_MODES; "state_dict" is privileged (envs/observation.py)
     num_points: int = 4096  # fixed N of the observed cloud (sampled or padded); Diffusion-Suction's CPU preset size
     bin: BinSpec = field(default_factory=BinSpec)
     camera: CameraConfig = field(default_factory=CameraConfig)
-    # The physical cup: 20 mm radius (a common 40 mm parcel cup), so V = dP*pi*r^2 (75 N at 60 kPa) can
-    # lift the heaviest 5 kg parcels when picked near their centre of mass. DESIGN's 10 mm (SuctionNet's
-    # labelling convention) would cap every pick at 1.9 kg; the dataset labels keep 10 mm.
-    suction: SuctionConfig = field(default_factory=lambda: SuctionConfig(cup_radius=ENV_CUP_RADIUS))
+    # The physical cup: a 40 mm bellows cup (r = 20 mm, suction/cup.py), rated V = dP*pi*r^2 / S (50 N at
+    # 60 kPa, S = 1.5), judged by its bellows seal model (the one PickExecutor's contact seal uses, so a
+    # policy reading info['suction'] scores candidates with the cell's own cup). SuctionNet's 10 mm spring
+    # convention (docs/labels.md) stays the dataset labels' cup.
+    suction: SuctionConfig = field(default_factory=lambda: SuctionConfig(cup_radius=ENV_CUP_RADIUS,
+                                                                         seal_model="bellows"))
     grasp: GraspConfig = field(default_factory=GraspConfig)
     arm: ArmConfig = field(default_factory=ArmConfig)
     sim: SimConfig = field(default_factory=SimConfig)
@@ -99,10 +114,13 @@ class EnvConfig:
         owner = "EnvConfig"
         check_pile_fields(self)
         require_choice(owner, "action_mode", self.action_mode, ACTION_MODES)
+        require_choice(owner, "obs_mode", self.obs_mode, OBS_MODES)
         require_positive_ints(self, ("num_points", "max_consecutive_failures", "record_points"))
         if self.max_attempts is not None:
             require_int(owner, "max_attempts", self.max_attempts, lo=1)
         require(self.action_margin >= 0, owner, f"action_margin must be >= 0, got {self.action_margin!r}")
+        require(self.record_dir is None or isinstance(self.record_dir, (str, os.PathLike)), owner,
+                f"record_dir must be a directory path (str) or None, got {self.record_dir!r}")
         for name, cls in (("bin", BinSpec), ("camera", CameraConfig), ("suction", SuctionConfig),
                           ("grasp", GraspConfig), ("arm", ArmConfig), ("sim", SimConfig)):
             require(isinstance(getattr(self, name), cls), owner,

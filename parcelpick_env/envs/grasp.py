@@ -1,124 +1,146 @@
-"""One physical pick attempt: physics, not the label, decides whether a parcel is delivered.
+"""One physical pick attempt as a sequence of named moves; physics, not the label, decides it.
 
-The sequence (DESIGN.md, 'Physical grasp check inside the environment'):
+Each move returns a ``MoveReport``; the first that fails ends the attempt with a typed ``Failure``
+(move, arm link, condition, body). The moves (docs/cell.md, 'Moves'):
 
-1. plan: verified IK for the hover point above the rim, the pre-grasp point ``p + d_pre n`` and the
-   approach line down to ``p - overshoot n``; any failure is ``unreachable``;
-2. free-space moves home -> hover -> pre-grasp, collision-checked at every control waypoint;
-3. guarded approach along ``-n`` with dynamics, stopped at the first cup contact
-   (nothing before the overshoot: ``no_contact``; the cup on the bin or any other link pressing on
-   the scene: ``collision``);
-4. seal at the actual contact: the cup axis is ray-cast onto the contacted parcel's true mesh and the
-   shared ``SuctionScorer`` scores the seal there along the actual axis (``no_seal`` below threshold);
-5. attach with a fixed constraint at the contact, lift clear of the rim and carry to the drop zone,
-   reading the constraint's reaction wrench every step and checking Dex-Net 3.0's suction-ring
-   conditions; a violation held for ``violation_steps`` steps releases the parcel (``dropped``, with
-   the condition named);
-6. at the drop zone the parcel is released and leaves the scene (``success``).
+- ``plan``: verified IK for the hover point, the descent to the pre-grasp point ``p + d_pre n`` and
+  the approach line to ``p - overshoot n`` (``unreachable`` otherwise). The hover height comes from
+  the pile: the highest parcel, fixture or wall near the pick, plus a margin.
+- ``hover``: a planned free-space move to the hover configuration (collision-free by construction).
+- ``descend``: a straight line down to the pre-grasp point (checked before it is run).
+- ``approach``: a guarded line along ``-n`` with dynamics, stopped at the first cup contact
+  (``no_contact`` past the overshoot; another link, or the cup on the bin: ``collision``).
+- ``seal``: the vacuum builds while the cup rests; the bellows cup's seal is judged at the actual lip
+  pose on the true mesh (``no_seal`` below threshold); its quality sets the vacuum (``suction.cup``).
+- ``lift`` and ``transport``: the parcel is attached and carried along straight Cartesian lines with
+  the tool on its contact axis and yaw, up to a height cleared above the pile and the rim, then over
+  to the drop zone, timed so the predicted ring loads stay within ``carry_load_target``. Every step the
+  physical wrench (Newton-Euler of the held parcel plus its real contacts, ``suction.cup``) is checked
+  against Dex-Net 3.0's ring conditions: a sustained violation is ``dropped`` (condition named); a
+  held parcel pressing on a wall or another parcel is ``collision`` (that body named).
+- ``release``: at the drop zone the parcel is released and leaves the scene (``success``).
+- ``retreat``: back to home (it never changes the outcome).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pybullet as p
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from parcelpick_env.envs.config import GraspConfig
-from parcelpick_env.robot.arm import Contact, Gen3Arm
+from parcelpick_env.robot.arm import MAX_IK_JUMP, Contact, Gen3Arm
+from parcelpick_env.robot.planning import Attachment
+from parcelpick_env.robot.timing import Trajectory, hold_trajectory, joint_trajectory, path_trajectory
 from parcelpick_env.scene.scene import ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 from parcelpick_env.suction.config import SuctionConfig
+from parcelpick_env.suction.cup import (CONDITIONS, HoldMonitor, ToolState, contact_forces, mesh_inertia,
+                                        suction_ring_ratios)
 from parcelpick_env.suction.scorer import SuctionScorer
+
+__all__ = ["OUTCOMES", "CONDITIONS", "MOVES", "Failure", "MoveReport", "PickResult", "PickExecutor",
+           "suction_ring_ratios"]
 
 OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", "dropped", "collision",
                              "invalid_action")
-CONDITIONS: tuple[str, ...] = ("friction_x", "friction_y", "friction_torsion", "material_x", "material_y",
-                               "suction")
-SQRT2, SQRT3 = math.sqrt(2.0), math.sqrt(3.0)
-PATH_STEP = 0.03  # m between IK waypoints on Cartesian lines (joint-interpolated in between)
-LIFT_STEP = 0.06  # m between IK waypoints on the vertical lift
+MOVES: tuple[str, ...] = ("plan", "hover", "descend", "approach", "seal", "lift", "transport", "release",
+                          "retreat")
+LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump branches near the drop zone)
+LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
 
 
-def suction_ring_ratios(force: np.ndarray, torque: np.ndarray, mu: float, r: float, k: float,
-                        vacuum: float) -> np.ndarray:
-    """Load / capacity of each Dex-Net 3.0 suction-ring condition, in ``CONDITIONS`` order (>1 fails).
+@dataclass(frozen=True)
+class Failure:
+    """Why an attempt failed: the move, the arm link involved, the condition (a ring condition, a seal
+    reason, why an action was invalid) and the other body (pybullet id), each None when not known."""
 
-    ``force``/``torque`` are what the cup exerts on the parcel in the cup frame (z along the approach,
-    into the parcel); ``f_N = f_z + V`` is the ring's normal force including the vacuum pull.
-    """
-    fx, fy, fz = (float(v) for v in force)
-    tx, ty, tz = (float(v) for v in torque)
-    f_n = fz + vacuum
-    friction_cap = mu * f_n
-    material_cap = math.pi * r * k
+    move: str
+    link: str | None = None
+    condition: str | None = None
+    body: int | None = None
 
-    def ratio(load: float, cap: float) -> float:
-        if cap <= 0.0:
-            return math.inf if load > 0.0 or cap < 0.0 else 0.0
-        return load / cap
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
 
-    return np.array([
-        ratio(SQRT3 * abs(fx), friction_cap),
-        ratio(SQRT3 * abs(fy), friction_cap),
-        ratio(SQRT3 * abs(tz), r * friction_cap),
-        ratio(SQRT2 * abs(tx), material_cap),
-        ratio(SQRT2 * abs(ty), material_cap),
-        ratio(max(-fz, 0.0), vacuum),  # f_z >= -V
-    ])
+
+@dataclass(frozen=True)
+class MoveReport:
+    """One move's result: ``outcome`` is 'ok' or the attempt's failing outcome (one of ``OUTCOMES``)."""
+
+    move: str
+    outcome: str = "ok"
+    failure: Failure | None = None
+    steps: int = 0
+    duration: float = 0.0  # s of simulated time
+
+    @property
+    def ok(self) -> bool:
+        return self.outcome == "ok"
 
 
 @dataclass
 class PickResult:
+    """One attempt: its outcome (one of ``OUTCOMES``), the typed ``failure``, the contacted parcel and
+    seal, each ring condition's peak load ratio, every move's report and the replay ``trace``."""
+
     outcome: str
-    failure_cause: str | None = None
+    failure: Failure | None = None
     object_id: int | None = None
     body_id: int | None = None
     contact_point: np.ndarray | None = None  # where the cup axis meets the true mesh
     contact_axis: np.ndarray | None = None  # actual cup approach axis at contact
     seal: float | None = None
     peak_ratios: dict[str, float] = field(default_factory=dict)  # load / capacity per condition
-    failure_phase: str | None = None  # 'lift' or 'transport' for a dropped parcel
     sim_time: float = 0.0
     dynamic_steps: int = 0
+    moves: list[MoveReport] = field(default_factory=list)
     trace: list[dict[str, Any]] = field(default_factory=list)
 
+    @property
+    def failure_cause(self) -> str | None:
+        """The condition when one is known, else 'move: link', else the move (older string form)."""
+        f = self.failure
+        if f is None:
+            return None
+        if f.condition:
+            return f.condition
+        return f"{f.move}: {f.link}" if f.link else f.move
 
-class _HoldMonitor:
-    """Reads the reaction wrench each step and breaks the seal after a sustained violation."""
+    @property
+    def failure_phase(self) -> str | None:
+        return None if self.failure is None else self.failure.move
 
-    def __init__(self, cid: int, client: int, grasp: GraspConfig, suction: SuctionConfig) -> None:
-        self.cid, self.client = cid, client
-        self.mu, self.r, self.k = grasp.cup_friction, suction.cup_radius, suction.material_k
-        self.vacuum = grasp.vacuum_force(suction.cup_radius)
-        self.limit = grasp.violation_steps
-        self.run = 0
-        self.peak = np.zeros(len(CONDITIONS))
-        self.cause: str | None = None
-        self.phase = "lift"  # where the hold is: 'lift' or 'transport'
-        self.failed_in: str | None = None
 
-    def __call__(self) -> str | None:
-        state = np.asarray(p.getConstraintState(self.cid, physicsClientId=self.client), dtype=np.float64)
-        # pybullet reports the force on the child (parcel) in the parent (cup) frame; the torque's sign
-        # is the opposite convention, which the |.| in every torque condition ignores.
-        ratios = suction_ring_ratios(state[:3], state[3:6], self.mu, self.r, self.k, self.vacuum)
-        self.peak = np.maximum(self.peak, np.nan_to_num(ratios, posinf=1e9))
-        if np.any(ratios > 1.0):
-            self.run += 1
-            if self.run >= self.limit:
-                # the vacuum losing first makes f_N <= 0 and so every friction ratio infinite: name
-                # the root cause
-                worst = np.nan_to_num(ratios, posinf=1e9)
-                self.cause = "suction" if ratios[-1] > 1.0 else CONDITIONS[int(np.argmax(worst))]
-                self.failed_in = self.phase
-                return self.cause
-        else:
-            self.run = 0
-        return None
+@dataclass
+class _Pick:
+    """What the moves of one attempt hand on to each other."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    axis: np.ndarray
+    hover: np.ndarray
+    pre: np.ndarray
+    q_hover: np.ndarray | None = None
+    descend: Trajectory | None = None  # hover -> pre-grasp (None when the hover is the pre-grasp point)
+    approach: Trajectory | None = None  # pre-grasp -> p - overshoot n
+    lift: Trajectory | None = None  # as executed, to set the parcel back down
+    parcel: ParcelState | None = None
+    seal: float | None = None
+    contact_point: np.ndarray | None = None
+    contact_axis: np.ndarray | None = None
+    cid: int | None = None
+    monitor: HoldMonitor | None = None
+    supports: set[int] = field(default_factory=set)  # bodies touching the parcel when it was attached
+    x_axis: np.ndarray | None = None  # the cup's yaw, kept while carrying
+    com_in_tool: np.ndarray | None = None  # the held parcel's COM in the tool frame, as attached
+    R_in_tool: np.ndarray | None = None  # and its rotation
 
 
 class PickExecutor:
@@ -126,204 +148,442 @@ class PickExecutor:
 
     def __init__(self, sim: Simulator, arm: Gen3Arm, grasp: GraspConfig, suction: SuctionConfig) -> None:
         self.sim, self.arm, self.grasp, self.suction = sim, arm, grasp, suction
-        self.ready_q = np.asarray(arm.config.home, dtype=np.float64)
+        self.home_q = np.asarray(arm.config.home, dtype=np.float64)
+        self.ready_q = self.home_q.copy()
+        self.kin = arm.kin
+        self.planner = arm.planner
+        self._contact_config = dataclasses.replace(suction, seal_model="bellows")  # the physical cup's seal
         self._trace: list[dict[str, Any]] = []
         self._next_trace = 0.0
         self._held: int | None = None
+        self._move = "plan"
+        self._reports: list[MoveReport] = []
+        self._dynamic_steps = 0
+        self._t0 = 0.0
 
     def set_ready_seed(self, q: np.ndarray) -> None:
-        """A configuration above the bin centre: seeds IK for the hover point, and every free-space
-        move between home and the bin passes through it (clear of the walls)."""
+        """A configuration above the bin centre: seeds IK for the hover point."""
         self.ready_q = np.asarray(q, dtype=np.float64)
 
-    # ------------------------------------------------------------------------------------ helpers
+    # ------------------------------------------------------------------------------------ bookkeeping
     def _record(self) -> None:
         t = self.arm.sim_time
         if t + 1e-9 < self._next_trace:
             return
         self._next_trace = t + self.grasp.trace_interval
-        entry: dict[str, Any] = {"t": t, "q": self.arm.q.copy(), "tip": self.arm.kin.forward(self.arm.q)[0]}
+        tip, axis = self.kin.forward(self.arm.q)[:2]
+        entry: dict[str, Any] = {"t": t, "move": self._move, "q": self.arm.q.copy(), "tip": tip, "axis": axis}
         if self._held is not None:
             entry["held"] = self._held
             entry["held_pose"] = self.sim.body_pose(self._held)
         self._trace.append(entry)
 
-    def _line(self, start: np.ndarray, end: np.ndarray, step: float = PATH_STEP) -> np.ndarray:
-        n = max(1, math.ceil(np.linalg.norm(end - start) / step))
-        return start + (end - start) * (np.arange(1, n + 1)[:, None] / n)
+    def _report(self, move: str, outcome: str = "ok", failure: Failure | None = None, steps: int = 0,
+                t_start: float | None = None) -> MoveReport:
+        t_start = self.arm.sim_time if t_start is None else t_start
+        rep = MoveReport(move, outcome, failure, steps, self.arm.sim_time - t_start)
+        self._reports.append(rep)
+        return rep
 
-    def _step(self) -> None:
-        self.sim.step(1)
-        self._record()
+    def _result(self, outcome: str, failure: Failure | None = None, pick: _Pick | None = None) -> PickResult:
+        kw: dict[str, Any] = {}
+        if pick is not None and pick.parcel is not None:
+            kw = {"object_id": pick.parcel.object_id, "body_id": pick.parcel.body_id, "seal": pick.seal,
+                  "contact_point": pick.contact_point, "contact_axis": pick.contact_axis}
+            if pick.monitor is not None:
+                kw["peak_ratios"] = pick.monitor.peak_ratios
+        return PickResult(outcome, failure, sim_time=self.arm.sim_time - self._t0,
+                          dynamic_steps=self._dynamic_steps, moves=list(self._reports), trace=self._trace, **kw)
 
-    def _drive(self, waypoints, duration: float, dt: float | None = None, **kwargs):
-        dt = self.sim.config.timestep if dt is None else dt
-        res = self.arm.drive(waypoints, self._step, dt, min_duration=duration, **kwargs)
+    # ------------------------------------------------------------------------------------ geometry
+    @staticmethod
+    def _obstacles(scene: Scene) -> list[int]:
+        """Bodies a move must clear: the parcels and any fixtures of the scene (the bin is handled by
+        its rim)."""
+        return [ps.body_id for ps in scene.parcels] + list(scene.meta.get("fixtures", ()))
+
+    def _obstacle_top(self, scene: Scene, xy: np.ndarray, radius: float) -> float:
+        """Highest point of any parcel, fixture or bin wall whose footprint comes within ``radius`` of
+        ``xy`` (the bin floor if none)."""
+        spec = scene.bin
+        top = spec.floor_z
+        half = np.asarray(spec.inner_size) / 2
+        if np.any(np.abs(np.asarray(xy) - np.asarray(spec.center_xy)) > half - radius):
+            top = spec.floor_z + spec.wall_height
+        for body in self._obstacles(scene):
+            if not self.sim.has_body(body):
+                continue
+            lo, hi = self.sim.aabb(body)
+            gap = np.maximum(np.maximum(lo[:2] - xy, xy - hi[:2]), 0.0)
+            if float(np.linalg.norm(gap)) <= radius:
+                top = max(top, float(hi[2]))
+        return top
+
+    def _line(self, q0: np.ndarray, end: np.ndarray, axis: np.ndarray, dt: float, max_speed: float,
+              max_accel: float | None = None, x_axis: np.ndarray | None = None, step: float = LINE_STEP
+              ) -> tuple[Trajectory | None, str | None]:
+        """The tip on a straight line from its place at ``q0`` to ``end`` with the tool on ``axis`` (and
+        yaw ``x_axis``): IK every ``step`` (``Gen3Arm.cartesian_path``), then ``path_trajectory`` within
+        the Gen3's joint limits, slowed uniformly in time until the tip's peak speed is within
+        ``max_speed`` and its peak acceleration within ``max_accel`` (speed scales with the slow-down
+        s, acceleration with s^2). (trajectory, None) or (None, why)."""
+        arm = self.arm
+        q0 = np.asarray(q0, dtype=np.float64)
+        start = self.kin.forward(q0)[0]
+        n = max(1, math.ceil(float(np.linalg.norm(end - start)) / step))
+        qs = arm.cartesian_path(q0, start + (end - start) * (np.arange(1, n + 1)[:, None] / n), axis, x_axis)
+        if qs is None:
+            return None, "ik failed along the line"
+        path = np.vstack([q0[None], np.asarray(qs)])
+        jump = float(np.abs(np.diff(path, axis=0)).max())
+        if jump > MAX_IK_JUMP:
+            return None, f"ik jumped {jump:.2f} rad between neighbouring points"
+        traj = path_trajectory(path, arm.limits, dt)
+        motion = [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
+        v = max(float(np.linalg.norm(m[2])) for m in motion)
+        a = max(float(np.linalg.norm(m[4])) for m in motion)
+        scale = min(1.0, max_speed / max(v, 1e-9))
+        if max_accel is not None and a > max_accel:
+            scale = min(scale, math.sqrt(max_accel / a))
+        return (traj if scale >= 1.0 else path_trajectory(path, arm.limits, dt, 0.98 * scale)), None
+
+    def _line_collision(self, traj: Trajectory, attached: Attachment | None = None):
+        """The first collision (planner's margin) at the samples of a Cartesian line, taken every
+        ``LINE_STEP`` of tip travel at the carrying speed cap (``planner.collision`` per sample)."""
+        stride = max(1, int(LINE_STEP / (self.grasp.carry_speed * traj.dt)))
+        for q in list(traj.q[::stride]) + [traj.q[-1]]:
+            hit = self.planner.collision(q, attached)
+            if hit is not None:
+                return hit
+        return None
+
+    # ------------------------------------------------------------------------------------ motion
+    def _sweep(self, traj: Trajectory, attached: Attachment | None = None) -> None:
+        """Kinematic move along a trajectory already known to be clear (the pile is at rest)."""
+        self.arm.sweep_trajectory(traj, attached, on_step=self._record, check=False)
+
+    def _execute(self, traj: Trajectory, stop: Callable[[list[Contact]], object] | None = None,
+                 on_step: Callable[[], object] | None = None, allowed_links: set[int] | None = None):
+        """Drive the arm along ``traj`` with dynamics (``Gen3Arm.execute``: motors, never reset)."""
+        def step_world() -> None:
+            self.sim.step(1)
+
+        def after() -> object:
+            self._record()
+            return on_step() if on_step is not None else None
+
+        res = self.arm.execute(traj, step_world, stop=stop, on_step=after, allowed_links=allowed_links)
         self._dynamic_steps += res.steps
         return res
 
-    def _retreat(self, *waypoints: np.ndarray) -> None:
-        """Back out through the planned free-space points to home (not collision-checked)."""
-        path = [q for q in waypoints if q is not None] + [self.ready_q, np.asarray(self.arm.config.home, dtype=np.float64)]
-        self.arm.sweep(path, self.grasp.control_dt_free, check=False, on_step=self._record)
+    def _free_move(self, move: str, q_goal: np.ndarray) -> MoveReport:
+        """A planned (collision-free by construction) free-space move to ``q_goal``."""
+        t0 = self.arm.sim_time
+        self._move = move
+        traj, why = self.arm.free_trajectory(q_goal, self.grasp.control_dt_free)
+        if traj is None:
+            return self._report(move, "unreachable", Failure(move, condition=why), t_start=t0)
+        self._sweep(traj)
+        return self._report(move, t_start=t0)
 
-    def _result(self, outcome: str, **kwargs) -> PickResult:
-        return PickResult(outcome, sim_time=self.arm.sim_time - self._t0, dynamic_steps=self._dynamic_steps,
-                          trace=self._trace, **kwargs)
+    def _retreat(self, *back: Trajectory | None) -> None:
+        """Back out along the given trajectories reversed, then home; never changes the outcome (an
+        unplannable return goes straight, unchecked: nothing is simulated during kinematic moves)."""
+        self._move = "retreat"
+        t0, dt = self.arm.sim_time, self.grasp.control_dt_free
+        path = [traj.q[0] for traj in back if traj is not None]
+        if path:
+            self._sweep(joint_trajectory(self.arm.q, path, self.arm.limits, dt))
+        traj, _ = self.arm.free_trajectory(self.home_q, dt)
+        self._sweep(traj if traj is not None else joint_trajectory(self.arm.q, [self.home_q], self.arm.limits, dt))
+        self._report("retreat", t_start=t0)
 
     # ------------------------------------------------------------------------------------ attempt
     def attempt(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> PickResult:
         """One attempt at suction point ``point`` with outward unit ``normal`` (both world frame)."""
-        g, arm = self.grasp, self.arm
-        self._trace, self._next_trace, self._held = [], arm.sim_time, None
-        self._t0, self._dynamic_steps = arm.sim_time, 0
+        arm = self.arm
+        self._trace, self._next_trace, self._held, self._reports = [], arm.sim_time, None, []
+        self._t0, self._dynamic_steps, self._move = arm.sim_time, 0, "plan"
         self._record()
-        point = np.asarray(point, dtype=np.float64)
-        normal = np.asarray(normal, dtype=np.float64)
+        pick = self._plan(scene, np.asarray(point, dtype=np.float64), np.asarray(normal, dtype=np.float64))
+        if isinstance(pick, MoveReport):
+            return self._result(pick.outcome, pick.failure)
+        for move in (self._hover, self._descend, self._approach, self._seal):
+            rep = move(scene, pick)
+            if not rep.ok:
+                self._retreat(pick.approach, pick.descend)
+                return self._result(rep.outcome, rep.failure, pick)
+        for move in (self._lift, self._transport):
+            rep = move(scene, pick)
+            if not rep.ok:
+                if rep.outcome == "unreachable" and pick.cid is not None:
+                    self._set_down(pick)
+                self._detach(pick)
+                self._retreat()
+                return self._result(rep.outcome, rep.failure, pick)
+        self._release(pick)
+        self._retreat()
+        return self._result("success", None, pick)
+
+    # ------------------------------------------------------------------------------------ moves
+    def _plan(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> _Pick | MoveReport:
+        g, arm = self.grasp, self.arm
         normal = normal / np.linalg.norm(normal)
         axis = -normal
-        rim = scene.bin.floor_z + scene.bin.wall_height
-        parcels = {ps.body_id: ps for ps in scene.parcels}
-
-        # -- plan everything before moving
         pre = point + g.pregrasp_distance * normal
+        clear = self._obstacle_top(scene, point[:2], g.hover_corridor) + g.hover_clearance
         hover = pre.copy()
-        hover[2] = max(pre[2], rim + g.hover_clearance)
-        end = point - g.overshoot * normal
-        q_hover = arm.ik(hover, axis, seed=self.ready_q)
-        if q_hover is None:
-            return self._result("unreachable", failure_cause="hover")
-        q_down = arm.cartesian_path(q_hover, self._line(hover, pre), axis) if hover[2] > pre[2] + 1e-6 else [q_hover]
-        if q_down is None:
-            return self._result("unreachable", failure_cause="pregrasp")
-        q_pre = q_down[-1]
-        q_approach = arm.cartesian_path(q_pre, self._line(pre, end), axis)
-        if q_approach is None:
-            return self._result("unreachable", failure_cause="approach")
+        hover[2] = max(pre[2], clear)
+        pick = _Pick(point, normal, axis, hover, pre)
+        pick.q_hover = arm.ik(hover, axis, seed=self.ready_q)
+        if pick.q_hover is None:
+            return self._report("plan", "unreachable", Failure("hover", condition="ik"))
+        q_pre = pick.q_hover
+        if hover[2] > pre[2] + 1e-3:
+            pick.descend, why = self._line(pick.q_hover, pre, axis, g.control_dt_free, g.carry_speed)
+            if pick.descend is None:
+                return self._report("plan", "unreachable", Failure("descend", condition=why))
+            q_pre = pick.descend.q[-1]
+        pick.approach, why = self._line(q_pre, point - g.overshoot * normal, axis, self.sim.config.timestep,
+                                        g.approach_speed)
+        if pick.approach is None:
+            return self._report("plan", "unreachable", Failure("approach", condition=why))
+        self._report("plan")
+        return pick
 
-        # -- free space: home -> ready (above the bin) -> hover -> pre-grasp; a hover above the ready
-        # height (a pile topping the rim) is approached directly
-        via = [] if hover[2] > arm.kin.forward(self.ready_q)[0][2] - 0.05 else [self.ready_q]
-        for path in (via + [q_hover], q_down):
-            res = arm.sweep(path, g.control_dt_free, on_step=self._record)
-            if not res.completed:
-                self._retreat(q_hover)
-                return self._result("collision", failure_cause=f"free-space: {arm.link_names.get(res.collision.link, 'base')}")
+    def _hover(self, scene: Scene, pick: _Pick) -> MoveReport:
+        return self._free_move("hover", pick.q_hover)
 
-        # -- guarded approach along -n
-        def cup_contact(contacts: list[Contact]) -> Contact | None:
-            return next((c for c in contacts if c.link == arm.cup_link), None)
+    def _descend(self, scene: Scene, pick: _Pick) -> MoveReport:
+        """Straight down to the pre-grasp point, checked against the scene before it is run."""
+        self._move, t0 = "descend", self.arm.sim_time
+        if pick.descend is None:
+            return self._report("descend", t_start=t0)
+        hit = self._line_collision(pick.descend)
+        if hit is not None:
+            return self._report("descend", "unreachable", Failure("descend", hit.link, body=hit.body), t_start=t0)
+        self._sweep(pick.descend)
+        return self._report("descend", t_start=t0)
 
-        length = g.pregrasp_distance + g.overshoot
-        res = self._drive(q_approach, math.pi / 2 * length / g.approach_speed, stop=cup_contact,
-                          allowed_links={arm.cup_link, arm.tip_link})
+    def _approach(self, scene: Scene, pick: _Pick) -> MoveReport:
+        """Guarded line along -n with dynamics, ended by the cup pressing on something."""
+        g, arm = self.grasp, self.arm
+        self._move, t0 = "approach", arm.sim_time
+
+        def touched(contacts: list[Contact]) -> Contact | None:
+            return next((c for c in contacts if c.link == arm.cup_link and c.normal_force > g.touch_force), None)
+
+        res = self._execute(pick.approach, stop=touched, allowed_links={arm.cup_link, arm.tip_link})
         if res.collision is not None:
-            self._retreat(q_pre, q_hover)
-            return self._result("collision", failure_cause=f"approach: {arm.link_names.get(res.collision.link, 'base')}")
-        if res.completed:
-            self._retreat(q_pre, q_hover)
-            return self._result("no_contact")
+            return self._report("approach", "collision", Failure("approach", res.link, body=res.collision.body),
+                                res.steps, t0)
+        if res.stopped_by is None:
+            return self._report("approach", "no_contact", Failure("approach", "suction_cup"), res.steps, t0)
         contact: Contact = res.stopped_by
-        parcel = parcels.get(contact.body)
-        if parcel is None:
-            self._retreat(q_pre, q_hover)
-            return self._result("collision", failure_cause="cup hit the bin")
+        parcel = next((ps for ps in scene.parcels if ps.body_id == contact.body), None)
+        if parcel is None:  # the cup came down on the bin or a fixture
+            return self._report("approach", "collision", Failure("approach", "suction_cup", body=contact.body),
+                                res.steps, t0)
+        pick.parcel = parcel
+        return self._report("approach", steps=res.steps, t_start=t0)
 
-        # -- the cup rests on the surface while the vacuum builds, then the seal is judged there
-        dwell = max(1, round(g.seal_dwell / self.sim.config.timestep))
-        arm.hold(dwell, self._step, self.sim.config.timestep)
-        self._dynamic_steps += dwell
-        tip, _ = arm.tip_pose()
-        cup_axis = arm.tip_axis()
-        seal, hit = self._seal_at(parcel, tip, cup_axis)
-        info = dict(object_id=parcel.object_id, body_id=parcel.body_id, contact_point=hit,
-                    contact_axis=cup_axis, seal=seal)
+    def _seal(self, scene: Scene, pick: _Pick) -> MoveReport:
+        """The cup rests (driven, holding its place) while the vacuum builds, then the seal is judged
+        at the actual lip pose."""
+        g, arm = self.grasp, self.arm
+        self._move, t0 = "seal", arm.sim_time
+        res = self._execute(hold_trajectory(arm.q, g.seal_dwell, self.sim.config.timestep),
+                            allowed_links={arm.cup_link, arm.tip_link})
+        tip, orn = arm.tip_pose()
+        axis = Rotation.from_quat(orn).as_matrix()[:, 2]
+        seal, hit, reason = self._seal_at(pick.parcel, self._seated_lip(pick.parcel.body_id, tip, axis), axis)
+        pick.seal, pick.contact_point, pick.contact_axis = seal, hit, axis
         if seal < g.seal_threshold:
-            self._retreat(q_pre, q_hover)
-            return self._result("no_seal", **info)
+            return self._report("seal", "no_seal", Failure("seal", "suction_cup", reason, pick.parcel.body_id),
+                                res.steps, t0)
+        return self._report("seal", steps=res.steps, t_start=t0)
 
-        # -- attach, lift, carry
-        cid = self._attach(parcel.body_id)
-        monitor = _HoldMonitor(cid, self.sim.client, g, self.suction)
-        # a coarser step and fewer solver iterations while carrying (documented speed trade-off)
-        with self.sim.physics_overrides(timestep=g.carry_dt, solver_iterations=g.carry_solver_iterations):
-            outcome = self._carry(parcel, cup_axis, rim, monitor)
-        info["peak_ratios"] = dict(zip(CONDITIONS, map(float, monitor.peak)))
-        self._release(cid, parcel.body_id)
-        if outcome == "success":
-            self.sim.remove(parcel.body_id)
-            self._retreat()
-            return self._result("success", **info)
-        self._retreat()
-        if outcome == "dropped":
-            return self._result("dropped", failure_cause=monitor.cause, failure_phase=monitor.failed_in, **info)
-        return self._result(outcome[0], failure_cause=outcome[1], **info)
+    def _seated_lip(self, body: int, tip: np.ndarray, axis: np.ndarray) -> np.ndarray:
+        """Where the lip sits on the parcel's collision hull along the cup axis.
 
-    def _seal_at(self, parcel: ParcelState, tip: np.ndarray, axis: np.ndarray) -> tuple[float, np.ndarray | None]:
-        """Seal where the cup axis meets the parcel's true mesh (0 when the axis misses it)."""
+        The rigid cup and the hull's collision margin leave the lip frame 2-3 mm short of the hull
+        at rest (numerics, not a physical gap); the bellows lip lies on the hull. What remains
+        between the hull and the true mesh (a mailer's wrinkles) is the real gap the seal judges.
+        """
+        hits = p.rayTest((tip - 0.05 * axis).tolist(), (tip + LIP_SEAT_BAND * axis).tolist(),
+                         physicsClientId=self.sim.client)
+        if not hits or hits[0][0] != body:
+            return tip
+        seat = np.asarray(hits[0][3]) + self.sim.config.collision_margin * axis
+        return seat if abs(float((seat - tip) @ axis)) <= LIP_SEAT_BAND else tip
+
+    def _seal_at(self, parcel: ParcelState, tip: np.ndarray, axis: np.ndarray
+                 ) -> tuple[float, np.ndarray | None, str | None]:
+        """(seal quality, where the cup axis meets the true mesh, why it failed) at the lip pose.
+
+        The bellows cup's ``contact_seal`` (suction/cup_seal.py) judges the actual lip position and
+        axis, including any gap to the true surface; the reason is its verdict ('edge', 'tilt', 'gap',
+        ...), or 'weak' for a seal that closes below ``seal_threshold``.
+        """
         pos, orn = self.sim.body_pose(parcel.body_id)
         parcel.position, parcel.orientation = pos, orn
         mesh: trimesh.Trimesh = parcel.world_mesh()
         origin = tip - 0.05 * axis
         locations, _, _ = mesh.ray.intersects_location(origin[None], axis[None], multiple_hits=False)
-        if len(locations) == 0:
-            return 0.0, None
-        hit = locations[np.argmin(np.linalg.norm(locations - origin, axis=1))]
-        scorer = SuctionScorer([mesh], parcel.world_com()[None], config=self.suction)
-        seal = float(scorer.seal(hit[None], (-axis)[None], np.zeros(1, dtype=np.int64))[0])
-        return seal, hit
+        hit = locations[np.argmin(np.linalg.norm(locations - origin, axis=1))] if len(locations) else None
+        scorer = SuctionScorer([mesh], parcel.world_com()[None], config=self._contact_config)
+        found = scorer.contact_seal(tip[None], axis[None], np.zeros(1, dtype=np.int64))
+        seal = float(found.quality[0])
+        reason = str(found.reason_names()[0])
+        if seal >= self.grasp.seal_threshold:
+            return seal, hit, None
+        return seal, hit, "weak" if reason == "sealed" else reason
 
-    def _attach(self, body: int) -> int:
-        """Fixed constraint from the cup lip to the parcel at their current relative pose."""
-        c = self.sim.client
-        tip, orn = self.arm.tip_pose()
+    def _attach(self, pick: _Pick) -> None:
+        """Fixed constraint from the cup lip to the parcel at their present relative pose; the wrench
+        is read from the cup's model (``HoldMonitor``), never from this constraint."""
+        c, arm, body = self.sim.client, self.arm, pick.parcel.body_id
+        # before the filter change below, which drops the body's contact manifolds until the next step
+        pick.supports = {int(b) for b in contact_forces(c, body, {arm.body}).bodies}
+        tip, orn = arm.tip_pose()
         bpos, born = p.getBasePositionAndOrientation(body, physicsClientId=c)  # COM frame
         inv_p, inv_o = p.invertTransform(bpos, born)
         child_p, child_o = p.multiplyTransforms(inv_p, inv_o, tip.tolist(), orn.tolist())
-        for link in range(-1, p.getNumJoints(self.arm.body, physicsClientId=c)):
-            p.setCollisionFilterPair(self.arm.body, body, link, -1, 0, physicsClientId=c)
-        cid = p.createConstraint(self.arm.body, self.arm.tip_link, body, -1, p.JOINT_FIXED, [0, 0, 0],
-                                 [0, 0, 0], child_p, childFrameOrientation=child_o, physicsClientId=c)
-        p.changeConstraint(cid, maxForce=1e5, physicsClientId=c)
+        for link in range(-1, p.getNumJoints(arm.body, physicsClientId=c)):
+            p.setCollisionFilterPair(arm.body, body, link, -1, 0, physicsClientId=c)
+        pick.cid = p.createConstraint(arm.body, arm.tip_link, body, -1, p.JOINT_FIXED, [0, 0, 0], [0, 0, 0],
+                                      child_p, childFrameOrientation=child_o, physicsClientId=c)
+        p.changeConstraint(pick.cid, maxForce=1e5, physicsClientId=c)
         self._held = body
-        return cid
+        asset = pick.parcel.asset
+        pick.monitor = HoldMonitor(self.grasp.cup, self.suction.cup_radius, self.suction.material_k,
+                                   self.sim.config.gravity, asset.mass, mesh_inertia(asset.mesh, asset.mass), pick.seal)
+        pick.x_axis = self.kin.tip_x(arm.q)
+        tool_p, tool_R = self.kin.tool_pose(arm.q)
+        com, R_body = self._body_state(body)
+        pick.com_in_tool, pick.R_in_tool = tool_R.T @ (com - tool_p), tool_R.T @ R_body
 
-    def _release(self, cid: int, body: int) -> None:
+    def _detach(self, pick: _Pick) -> None:
+        if pick.cid is None:
+            return
         c = self.sim.client
-        p.removeConstraint(cid, physicsClientId=c)
-        for link in range(-1, p.getNumJoints(self.arm.body, physicsClientId=c)):
-            p.setCollisionFilterPair(self.arm.body, body, link, -1, 1, physicsClientId=c)
+        p.removeConstraint(pick.cid, physicsClientId=c)
+        pick.cid = None
+        if self.sim.has_body(pick.parcel.body_id):
+            for link in range(-1, p.getNumJoints(self.arm.body, physicsClientId=c)):
+                p.setCollisionFilterPair(self.arm.body, pick.parcel.body_id, link, -1, 1, physicsClientId=c)
         self._held = None
 
-    def _carry(self, parcel: ParcelState, axis: np.ndarray, rim: float, monitor: _HoldMonitor):
-        """Lift clear of the rim, then carry to the drop zone; 'success', 'dropped' or (outcome, cause)."""
+    def _body_state(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        """A body's COM (world) and rotation matrix, as simulated."""
+        pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.sim.client)  # COM frame
+        return np.asarray(pos), np.asarray(p.getMatrixFromQuaternion(orn)).reshape(3, 3)
+
+    @staticmethod
+    def _held_pose(pick: _Pick, tool: ToolState) -> tuple[np.ndarray, np.ndarray]:
+        """COM and rotation of the held parcel where the grasp puts it: rigid in the tool frame as
+        attached (the simulated constraint's position lag is numerics, not a changing lever)."""
+        return tool.tip + tool.R @ pick.com_in_tool, tool.R @ pick.R_in_tool
+
+    def _carry_step(self, pick: _Pick, move: str, exempt: set[int]) -> Callable[[], object]:
+        """The per-step hold check of a carrying move.
+
+        A held parcel pressing harder than ``ArmConfig.collision_force`` (the arm links' own rule) on a
+        body other than the ``exempt`` ones (those it touched when attached, during the lift) has struck
+        it, and so has one whose seal breaks while it touches such a body: collision, that body named.
+        The cup's wrench counts every contact but the exempt bodies' bearing ones (pushing up from
+        below): while the parcel still rests there, how the load splits between the cup and its
+        support is statically indeterminate, so the cup is taken to carry it all. A ring condition
+        violated for ``CupSpec.violation_steps`` steps in a row breaks the seal: dropped.
+        """
+        strike, client, body = self.arm.config.collision_force, self.sim.client, pick.parcel.body_id
+
+        def check() -> tuple[str, Failure] | None:
+            contacts = contact_forces(client, body, {self.arm.body})
+            foreign = (contacts.normal_force > 0.0) & np.array([b not in exempt for b in contacts.bodies], dtype=bool)
+            hardest = None if not np.any(foreign) else int(
+                contacts.bodies[np.flatnonzero(foreign)[np.argmax(contacts.normal_force[foreign])]])
+            if np.any(foreign & (contacts.normal_force > strike)):
+                return "collision", Failure(move, "held parcel", body=hardest)
+            loads = contacts.without(~contacts.bearing(exempt))
+            # pose and velocity measured, acceleration as commanded (the executed trajectory's)
+            tool = ToolState(*self.kin.tool_motion(self.arm.q, self.arm.qd, self.arm.command[2]))
+            cause = pick.monitor.update(tool, *self._held_pose(pick, tool), loads.points, loads.forces)
+            if cause is None:
+                return None
+            if hardest is not None:  # the seal broke while the parcel was pressing on something: it struck it
+                return "collision", Failure(move, "held parcel", cause, hardest)
+            return "dropped", Failure(move, "suction_cup", cause, body)
+
+        return check
+
+    def _carry(self, scene: Scene, pick: _Pick, move: str, end: np.ndarray, exempt: set[int]) -> MoveReport:
+        """Carry the held parcel along the straight tip line to ``end`` at the contact axis and yaw,
+        timed so that no predicted ring load exceeds ``carry_load_target`` (payload-aware motion)."""
         g, arm = self.grasp, self.arm
-        tip, _ = arm.tip_pose()
-        lowest = self.sim.aabb(parcel.body_id)[0][2]
-        lift = max(rim + g.clearance - lowest, 0.05)
-        top = tip + np.array([0.0, 0.0, lift])
-        q_lift = arm.cartesian_path(arm.q, self._line(tip, top, LIFT_STEP), axis)
-        drop = np.array(g.drop_zone, dtype=np.float64)
-        drop[2] = max(drop[2], top[2])
-        q_drop = None
-        if q_lift is not None:
-            # keep the cup's yaw: turning a held parcel about the cup axis loads the ring in torsion
-            q_drop = arm.ik(drop, axis, seed=q_lift[-1], x_axis=arm.kin.tip_x(q_lift[-1]))
-            if q_drop is None:
-                q_drop = arm.ik(drop, axis, seed=q_lift[-1])
-            if q_drop is None:
-                q_drop = arm.ik(drop, np.array([0.0, 0.0, -1.0]), seed=q_lift[-1])
-        if q_lift is None or q_drop is None:
-            return ("unreachable", "lift" if q_lift is None else "drop zone")
-        res = self._drive(q_lift, math.pi / 2 * lift / g.lift_speed, dt=g.carry_dt, on_step=monitor)
-        if res.stopped_by:
-            return "dropped"
+        self._move, t0 = move, arm.sim_time
+        tool = ToolState(*self.kin.tool_motion(arm.q, np.zeros_like(arm.q), np.zeros_like(arm.q)))
+        a_max = pick.monitor.allowed_acceleration(tool, *self._held_pose(pick, tool), g.carry_load_target,
+                                                  g.min_carry_acceleration)
+        traj, why = self._line(arm.q, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max, pick.x_axis)
+        if traj is None:  # the held yaw may need an IK branch switch: let the cup turn (the wrench has I alpha)
+            traj, why = self._line(arm.q, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max)
+        if traj is None:
+            return self._report(move, "unreachable", Failure(move, condition=why), t_start=t0)
+        if move == "transport":  # the held parcel is part of the check: it must clear the rim and the pile
+            hit = self._line_collision(traj, Attachment.current(arm, pick.parcel.body_id))
+            if hit is not None:
+                return self._report(move, "unreachable", Failure(move, hit.link, body=hit.body), t_start=t0)
+        if move == "lift":
+            pick.lift = traj
+        with self.sim.physics_overrides(timestep=g.carry_dt, solver_iterations=g.carry_solver_iterations):
+            res = self._execute(traj, on_step=self._carry_step(pick, move, exempt))
         if res.collision is not None:
-            return ("collision", f"lift: {arm.link_names.get(res.collision.link, 'base')}")
-        monitor.phase = "transport"
-        res = self._drive([q_drop], 0.0, dt=g.carry_dt, on_step=monitor)
-        if res.stopped_by:
-            return "dropped"
-        if res.collision is not None:
-            return ("collision", f"transport: {arm.link_names.get(res.collision.link, 'base')}")
-        return "success"
+            return self._report(move, "collision", Failure(move, res.link, body=res.collision.body), res.steps, t0)
+        if res.stopped_by is not None:
+            outcome, failure = res.stopped_by
+            return self._report(move, outcome, failure, res.steps, t0)
+        return self._report(move, steps=res.steps, t_start=t0)
+
+    def _lift_height(self, scene: Scene, pick: _Pick) -> float:
+        """Tip height for carrying: the pile top (every other parcel and fixture) or the rim, whichever
+        is higher, plus the clearance and the held parcel's extent below the lip."""
+        spec = scene.bin
+        body = pick.parcel.body_id
+        top = spec.floor_z + spec.wall_height
+        for b in self._obstacles(scene):
+            if b != body and self.sim.has_body(b):
+                top = max(top, float(self.sim.aabb(b)[1][2]))
+        tip_z = float(self.kin.forward(self.arm.q)[0][2])
+        below = tip_z - float(self.sim.aabb(body)[0][2])
+        return top + self.grasp.clearance + below
+
+    def _lift(self, scene: Scene, pick: _Pick) -> MoveReport:
+        self._attach(pick)
+        tip = self.kin.forward(self.arm.q)[0]
+        top = np.array([tip[0], tip[1], max(self._lift_height(scene, pick), tip[2] + self.grasp.min_lift)])
+        return self._carry(scene, pick, "lift", top, pick.supports)
+
+    def _set_down(self, pick: _Pick) -> None:
+        """A parcel that cannot be carried on is lowered back along the lift before it is let go (as a
+        cell would put it back rather than drop it onto the pile); the outcome stays ``unreachable``."""
+        lift = pick.lift
+        if lift is None or float(np.abs(lift.q[-1] - self.arm.q).max()) > self.arm.config.start_tolerance:
+            return
+        down = Trajectory(lift.t, lift.q[::-1].copy(), -lift.qd[::-1], lift.qdd[::-1].copy(), lift.dt)
+        self._move = "retreat"
+        with self.sim.physics_overrides(timestep=down.dt, solver_iterations=self.grasp.carry_solver_iterations):
+            self._execute(down)
+
+    def _transport(self, scene: Scene, pick: _Pick) -> MoveReport:
+        tip = self.kin.forward(self.arm.q)[0]
+        drop = np.array(self.grasp.drop_zone, dtype=np.float64)
+        drop[2] = max(drop[2], tip[2])
+        return self._carry(scene, pick, "transport", drop, set())
+
+    def _release(self, pick: _Pick) -> None:
+        t0 = self.arm.sim_time
+        self._detach(pick)
+        self.sim.remove(pick.parcel.body_id)
+        self._report("release", t_start=t0)
+

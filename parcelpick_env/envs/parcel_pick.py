@@ -1,6 +1,8 @@
 """ParcelPick-v0: clear a bin of parcels with a suction cup on a Kinova Gen3, one pick per step.
 
-Observation (no ground truth): ``points``/``normals`` (N, 3) float32, world frame, N fixed (the
+Observation, by ``EnvConfig.obs_mode`` (``envs/observation.py``; ``'rgbd'`` keeps only the images,
+``'state_dict'`` is the privileged ground truth for the oracle). The default ``'pointcloud'`` (no ground
+truth): ``points``/``normals`` (N, 3) float32, world frame, N fixed (the
 camera cloud cropped to the inside of the bin, the cell's region of interest, then sampled without
 replacement, or padded by repeats, with the env's ``np_random``);
 ``rgb`` (H, W, 3) uint8; ``depth`` (H, W, 1) float32 metres. Camera calibration is in
@@ -35,6 +37,7 @@ lift/transport at ``GraspConfig.carry_dt`` with fewer solver iterations (see ``g
 from __future__ import annotations
 
 import dataclasses
+from numbers import Real
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +49,12 @@ from gymnasium import spaces
 from parcelpick_env.camera.camera import Camera
 from parcelpick_env.camera.frame import CameraFrame
 from parcelpick_env.envs.config import EnvConfig
-from parcelpick_env.envs.grasp import PickExecutor, PickResult
+from parcelpick_env.envs.grasp import Failure, PickExecutor, PickResult
+from parcelpick_env.envs.observation import ObservationBuilder
 from parcelpick_env.robot.arm import Gen3Arm
 from parcelpick_env.scene.scene import Scene
 from parcelpick_env.sim.simulator import Simulator
 
-OUT_OF_BIN_TOLERANCE = 0.01  # m: a COM this far beyond the inner walls has left the bin
 
 
 def pixel_from_action(action: np.ndarray, width: int, height: int) -> tuple[int, int]:
@@ -59,6 +62,25 @@ def pixel_from_action(action: np.ndarray, width: int, height: int) -> tuple[int,
     col = int(round((float(action[0]) + 1) / 2 * (width - 1)))
     row = int(round((float(action[1]) + 1) / 2 * (height - 1)))
     return row, col
+
+
+NO_BODY = -1  # info['failure']['body'] when no other body was involved
+NOT_MEASURED = -1.0  # info['seal'] when the attempt ended before the seal was judged
+
+
+def step_info(result: PickResult) -> dict[str, Any]:
+    """The attempt's part of ``info``, with one type per key whatever the outcome: ``NOT_MEASURED`` for a
+    seal that was not judged, a zero ``contact_point`` with ``contacted=False`` when nothing was touched,
+    ``NO_BODY`` and ``None`` strings for a failure that did not happen. Gymnasium's vector envs stack
+    infos into typed arrays, so a key that is a float on one step and None on another breaks them; NaN
+    placeholders would break the env checker's same-seed equality instead."""
+    failure = (result.failure or Failure(move=None)).as_dict()  # type: ignore[arg-type]
+    failure["body"] = NO_BODY if failure["body"] is None else int(failure["body"])
+    contacted = result.contact_point is not None
+    contact = np.asarray(result.contact_point, np.float64) if contacted else np.zeros(3)
+    return {"outcome": result.outcome, "failure_cause": result.failure_cause, "failure_phase": result.failure_phase,
+            "failure": failure, "seal": NOT_MEASURED if result.seal is None else float(result.seal),
+            "contacted": contacted, "contact_point": contact, "sim_time": float(result.sim_time)}
 
 
 class ParcelPickEnv(gym.Env):
@@ -72,12 +94,10 @@ class ParcelPickEnv(gym.Env):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.config = cfg
         self.render_mode = render_mode
+        # Connects (and starts EGL) at the first reset, not here: a constructed-only env (gymnasium's
+        # AsyncVectorEnv builds one in the parent before forking) must not start EGL (sim/egl.py).
         self.sim = Simulator(cfg.sim)
         self.camera = Camera(cfg.camera)
-        # The first two renders of a fresh EGL context shade differently from all later ones; render
-        # them now so reset(seed) gives bit-identical images from the first episode on.
-        for _ in range(2):
-            self.camera._render(self.sim)
         self.arm: Gen3Arm | None = None
         self.executor: PickExecutor | None = None
         self.scene: Scene | None = None
@@ -89,14 +109,8 @@ class ParcelPickEnv(gym.Env):
         self._episode = -1
         self._stats: dict[str, Any] = {}
 
-        h, w = cfg.camera.height, cfg.camera.width
-        n = cfg.num_points
-        self.observation_space = spaces.Dict({
-            "points": spaces.Box(-10.0, 10.0, (n, 3), np.float32),
-            "normals": spaces.Box(-1.0, 1.0, (n, 3), np.float32),
-            "rgb": spaces.Box(0, 255, (h, w, 3), np.uint8),
-            "depth": spaces.Box(0.0, float(cfg.camera.far), (h, w, 1), np.float32),
-        })
+        self._observation = ObservationBuilder(cfg)  # the obs_mode's space and builder (envs/observation.py)
+        self.observation_space = self._observation.space
         self._bin = cfg.bin
         if cfg.action_mode == "pose":
             lo, hi = self._bin_box()
@@ -132,26 +146,8 @@ class ParcelPickEnv(gym.Env):
             p.changeDynamics(ps.body_id, -1, activationState=p.ACTIVATION_STATE_SLEEP, physicsClientId=c)
 
     def _observe(self) -> dict[str, np.ndarray]:
-        self.frame = frame = self.camera.capture(self.sim, self.scene, self.np_random)
-        n = self.config.num_points
-        roi = np.flatnonzero(self._bin.contains(frame.points))  # the cell's region of interest: inside the bin
-        total = len(roi)
-        if total == 0:
-            idx = np.zeros(0, dtype=np.int64)
-        elif total >= n:
-            idx = roi[np.sort(self.np_random.choice(total, n, replace=False))]
-        else:
-            idx = roi[np.concatenate([np.arange(total), np.sort(self.np_random.choice(total, n - total, replace=True))])]
-        points = np.zeros((n, 3), np.float32)
-        normals = np.zeros((n, 3), np.float32)
-        normals[:, 2] = 1.0
-        if len(idx):
-            points[:] = frame.points[idx]
-            normals[:] = frame.normals[idx]
-        np.clip(points, -10.0, 10.0, out=points)
-        np.clip(normals, -1.0, 1.0, out=normals)
-        return {"points": points, "normals": normals, "rgb": frame.rgb.astype(np.uint8),
-                "depth": frame.depth[..., None].astype(np.float32)}
+        self.frame = self.camera.capture(self.sim, self.scene, self.np_random)
+        return self._observation.build(self.frame, self.scene, self.sim, self._bin, self.np_random)
 
     def _info(self, **extra: Any) -> dict[str, Any]:
         s = self._stats
@@ -159,18 +155,33 @@ class ParcelPickEnv(gym.Env):
             "attempts": s["attempts"], "successes": s["successes"], "parcels_placed": s["placed"],
             "parcels_cleared": s["cleared"], "parcels_remaining": len(self.scene.parcels),
             "parcels_lost": s["lost"],
+            # how the scene was built: requested = placed + skipped (no room, scattered) + lost at reset
+            "parcels_requested": self.scene.meta.get("requested", s["placed"]),
+            "parcels_skipped": self.scene.meta.get("skipped", 0),
+            "parcels_lost_at_reset": self.scene.meta.get("lost", 0),
             "R_grasp": s["successes"] / s["attempts"] if s["attempts"] else 0.0,
             "R_object": s["cleared"] / s["placed"] if s["placed"] else 0.0,
             "consecutive_failures": s["consecutive"],
             "intrinsics": self.frame.intrinsics.copy(), "extrinsics": self.frame.extrinsics.copy(),
             "workspace": self._bin.workspace(),  # the cell's known geometry (bin floor and walls), not ground truth
             "scene_seed": self.scene.seed,
+            **self._observation.info(),  # 'privileged' (True only in obs_mode='state_dict') and its context
         }
         info.update(extra)
         return info
 
     def _parse_action(self, action: Any) -> tuple[np.ndarray | None, np.ndarray | None, str | None]:
-        """(point, unit normal, None) or (None, None, why it is invalid)."""
+        """(point, unit normal, None) or (None, None, why it is invalid).
+
+        Only real numbers are actions: numpy would turn "0.1", True and 1+0j into floats and the arm would
+        execute them, so strings, booleans and complex values are refused before any conversion.
+        """
+        if isinstance(action, (list, tuple)) or (isinstance(action, np.ndarray) and action.dtype == object):
+            items = np.asarray(action, dtype=object).ravel()
+            if not all(isinstance(x, Real) and not isinstance(x, (bool, np.bool_)) for x in items):
+                return None, None, "not numeric (strings, booleans and complex numbers are refused)"
+        elif np.asarray(action).dtype.kind not in "iuf":  # arrays, tensors and scalars: by dtype
+            return None, None, f"not numeric (dtype {np.asarray(action).dtype} refused)"
         try:
             a = np.asarray(action, dtype=np.float64)
         except (TypeError, ValueError):
@@ -210,17 +221,14 @@ class ParcelPickEnv(gym.Env):
         return np.vstack([base, origins, tip])
 
     def _drop_departed(self) -> int:
-        """Forget delivered parcels; remove those that fell out of the bin. Returns how many fell out."""
-        spec = self.scene.bin
-        lo = np.asarray(spec.center_xy) - np.asarray(spec.inner_size) / 2 - OUT_OF_BIN_TOLERANCE
-        hi = np.asarray(spec.center_xy) + np.asarray(spec.inner_size) / 2 + OUT_OF_BIN_TOLERANCE
+        """Forget delivered parcels; remove those that fell out of the bin (``BinSpec.contains`` on the
+        centre of mass, the definition the pile builder uses too). Returns how many fell out."""
         kept, lost = [], 0
         for ps in self.scene.parcels:
             if not self.sim.has_body(ps.body_id):
                 continue
             ps.position, ps.orientation = self.sim.body_pose(ps.body_id)
-            com = ps.world_com()
-            if np.all(com[:2] > lo) and np.all(com[:2] < hi) and com[2] > spec.floor_z - OUT_OF_BIN_TOLERANCE:
+            if self.scene.bin.contains(ps.world_com())[0]:
                 kept.append(ps)
             else:
                 self.sim.remove(ps.body_id)
@@ -238,7 +246,11 @@ class ParcelPickEnv(gym.Env):
         self.arm.hold(steps, lambda: self.sim.step(1), self.sim.config.timestep)
         bodies = [ps.body_id for ps in self.scene.parcels]
         self.sim.settle(bodies, max_steps=self.config.grasp.max_post_settle_steps)
-        self._drop_departed()
+        lost = self._drop_departed()
+        if lost:  # still part of building the scene: its own count of parcels lost, and placed
+            meta = self.scene.meta
+            meta["lost"] = meta.get("lost", 0) + lost
+            meta["placed"] = len(self.scene.parcels)
 
     # ------------------------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -276,6 +288,8 @@ class ParcelPickEnv(gym.Env):
         return obs, self._info(reason="cleared" if placed == 0 else None)
 
     def step(self, action: Any):
+        if getattr(self, "_closed", False):
+            raise RuntimeError("ParcelPick env is closed: step() after close(); make a new env")
         if self.scene is None:
             raise RuntimeError("call reset() before step()")
         s = self._stats
@@ -283,7 +297,7 @@ class ParcelPickEnv(gym.Env):
         s["attempts"] += 1
         extra: dict[str, Any] = {}
         if why is not None:
-            result = PickResult("invalid_action", failure_cause=why)
+            result = PickResult("invalid_action", Failure("action", condition=why))
             extra["invalid_reason"] = why
         else:
             result = self.executor.attempt(self.scene, point, normal)
@@ -312,10 +326,7 @@ class ParcelPickEnv(gym.Env):
             terminated, reason = True, "consecutive_failures"
         elif s["attempts"] >= self.config.attempt_limit:
             truncated, reason = True, "max_attempts"
-        info = self._info(outcome=result.outcome, failure_cause=result.failure_cause,
-                          failure_phase=result.failure_phase, seal=result.seal,
-                          contact_point=result.contact_point, sim_time=result.sim_time, reason=reason,
-                          **extra)
+        info = self._info(**step_info(result), reason=reason, **extra)
         if self.recorder is not None:
             k = s["attempts"]
             self.recorder.log_action(k, point, normal)
@@ -336,8 +347,9 @@ class ParcelPickEnv(gym.Env):
         return self.frame.rgb.copy()
 
     def close(self) -> None:
+        self._closed = True  # step() then refuses clearly instead of reaching pybullet's "Not connected"
         if self.recorder is not None:
             self.recorder.close()
             self.recorder = None
-        if getattr(self, "sim", None) is not None and self.sim.client is not None:
-            self.sim.close()
+        if getattr(self, "sim", None) is not None:
+            self.sim.close()  # idempotent; a never-used simulator closes without connecting

@@ -20,7 +20,7 @@ Read a file back with ``rerun.chunk.RrdReader(path).store()``.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 

@@ -1,28 +1,41 @@
-"""The Gen3 arm in a pybullet world: loading, verified IK with joint limits, bounded-speed motion, contacts.
+"""The Gen3 arm in a pybullet world: loading, verified IK with joint limits, execution of moves, contacts.
 
-Motion is joint-space at a bounded joint speed in simulated time. Every move follows a cosine velocity
-profile whose peak joint speed is the limit (0.8727 rad/s), so a held parcel sees finite accelerations.
-Two ways to execute a move, both passing through every intermediate configuration (no teleport):
+Kinematics live in ``kinematics``, trajectory timing in ``timing`` (jerk-limited, ruckig) and
+collision-free planning in ``planning`` (OMPL); this class drives the simulator with their results:
 
-- ``sweep``: free-space moves. The arm is set to each control waypoint and checked for contact with
-  collision detection only; the resting pile is not integrated. Cheap, and exact for a static scene.
-- ``drive``: contact-rich or load-carrying moves. The arm is set to each waypoint (position and
-  velocity) and the world is stepped with dynamics, so contacts and constraint forces are real.
+- ``free_trajectory``: a planned free-space move (straight when clear, else RRTConnect), timed;
+  ``cartesian_trajectory``: the tool tip along straight lines with a fixed approach axis (and yaw).
+- ``execute``: dynamic execution. pybullet's position motors, torque-limited to the Gen3's efforts,
+  servo the arm along the trajectory while the world steps; the joints are never reset, so contacts
+  and a held parcel's constraint see a physically driven arm.
+- ``sweep_trajectory``: kinematic free-space execution while the world is NOT stepped (the pile is at
+  rest): the arm (and a held parcel) are placed at every sample and collision-checked.
+- ``tool_motion``: the tool's pose, twist and acceleration, for the held parcel's inertial wrench.
+- ``hold``: stand still while the world steps, driven by the motors like ``execute``.
+
+Velocity, acceleration and jerk limits are ``timing.GEN3_LIMITS`` (``Gen3Arm.limits``).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import pybullet as p
 from scipy.spatial.transform import Rotation
 
-from parcelpick_env.robot.gen3 import EE_OFFSET, JOINTS, URDF_PATH, VELOCITY_LIMIT, SuctionToolSpec, write_urdf
+from parcelpick_env.robot.gen3 import JOINTS, URDF_PATH, SuctionToolSpec, write_urdf
+from parcelpick_env.robot.kinematics import ARM_DOF, Gen3Kinematics
+from parcelpick_env.robot.planning import Attachment, Collision, MotionPlanner, PlannerConfig
+from parcelpick_env.robot.timing import (GEN3_LIMITS, JointLimits, Trajectory, concatenate, hold_trajectory,
+                                        joint_trajectory, path_trajectory)
 
-ARM_DOF = 7
+CARTESIAN_STEP = 0.02  # m between IK points on Cartesian lines timed by path_trajectory
+PATH_IK_TOLERANCE = 0.01  # of the IK tolerances: points on a Cartesian path converge to 0.04 mm
+MAX_IK_JUMP = 0.25  # rad: a larger joint change between neighbouring IK points is a branch switch
 
 
 @dataclass(frozen=True)
@@ -31,86 +44,38 @@ class ArmConfig:
     side (bin centred at the origin, long side along x) on a 0.30 m pedestal, facing the bin. Chosen by
     a grid search of top-down IK coverage (floor to 0.7 m: about 90% of the bin volume, floor 94%)."""
 
-    base_position: tuple[float, float, float] = (0.0, -0.38, 0.30)
+    # 0.175 m behind the 0.70 x 0.45 m tote's near wall, 0.30 m above its floor: reaches 99.8% of a
+    # floor x [0, 0.45 m] grid top-down (docs/piles.md, tests/test_pile.py::test_arm_reaches_the_tote_top_down)
+    base_position: tuple[float, float, float] = (0.0, -0.40, 0.30)
     base_yaw: float = math.pi / 2
     home: tuple[float, ...] = (0.0, -0.35, 0.0, -2.3, 0.0, -0.5, math.pi / 2)  # tucked, out of the camera view
     # Kinova's own "home" (elbow up, tool forward): seeds IK for the first pose above the bin
     ik_seed: tuple[float, ...] = (0.0, 0.26, math.pi, -2.27, 0.0, 0.96, math.pi / 2)
-    joint_speed: float = VELOCITY_LIMIT  # rad/s, the V12 velocity limit
     ik_position_tol: float = 0.004  # m, verified after IK
     ik_angle_tol: float = math.radians(3.0)  # rad, between the reached and the asked tool axis
     ik_iterations: int = 200
     ik_refinements: int = 3  # re-solve from the previous answer; pybullet's IK is a single damped step
     yaw_candidates: int = 4  # the cup is axisymmetric: try this many tool yaws about its axis
     pedestal_width: float = 0.14  # m, static column from the ground to the base (0 disables it)
-    hold_force: float = 2000.0  # joint motor force while driven (the arm is position-servoed)
     collision_force: float = 20.0  # N, a non-cup link pushing harder than this is a collision
+    # execute(): pybullet's position motors, torque-limited to the Gen3's efforts (gen3.JOINTS).
+    # The position gain is the fraction of the joint error corrected per step (0.3: an error decays
+    # in ~10 steps without ringing); the velocity gain 1 makes the motor take the target velocity.
+    servo_position_gain: float = 0.3
+    servo_velocity_gain: float = 1.0
+    start_tolerance: float = 0.02  # rad: a trajectory must start this close to the arm's state
 
     def __post_init__(self) -> None:
         if len(self.home) != ARM_DOF or len(self.ik_seed) != ARM_DOF:
             raise ValueError(f"ArmConfig.home and ik_seed need {ARM_DOF} joint values")
-        if not self.joint_speed > 0 or not self.ik_position_tol > 0 or not self.ik_angle_tol > 0:
-            raise ValueError("ArmConfig speeds and tolerances must be > 0")
+        if not self.ik_position_tol > 0 or not self.ik_angle_tol > 0:
+            raise ValueError("ArmConfig IK tolerances must be > 0")
         if self.ik_iterations < 1 or self.ik_refinements < 1 or self.yaw_candidates < 1:
             raise ValueError("ArmConfig IK counts must be >= 1")
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product without np.cross's per-call overhead (hot in the IK loop)."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
-
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
-
-
-class Gen3Kinematics:
-    """Forward kinematics and Jacobian of the tool tip in numpy, from the same table as the URDF.
-
-    Used to refine pybullet's IK answer by damped least squares: pybullet's null-space IK alone leaves
-    5-20 mm of error on this arm, and the refinement needs thousands of FK calls per episode.
-    """
-
-    def __init__(self, base_position, base_yaw: float, tool_length: float) -> None:
-        self.base_R = np.array(Rotation.from_euler("z", base_yaw).as_matrix())
-        self.base_p = np.asarray(base_position, dtype=np.float64)
-        self.offsets = [np.array(j[1]) for j in JOINTS]
-        self.rolls = [_rot_x(j[2]) for j in JOINTS]
-        self.ee = np.array(EE_OFFSET)
-        self.tip = np.array([0.0, 0.0, -tool_length])  # EE frame is bracelet rolled by pi: -z there
-        self._last_R = np.eye(3)  # bracelet frame of the last forward(); tool x = its x, tool z = -its z
-
-    def forward(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Tip position, tip axis (+z of the tool), joint axes (7,3) and joint origins (7,3), world."""
-        R, t = self.base_R, self.base_p
-        axes, origins = np.empty((ARM_DOF, 3)), np.empty((ARM_DOF, 3))
-        rz = np.eye(3)
-        for i in range(ARM_DOF):
-            t = t + R @ self.offsets[i]
-            R = R @ self.rolls[i]
-            axes[i], origins[i] = R[:, 2], t
-            c, s = math.cos(q[i]), math.sin(q[i])
-            rz[0, 0], rz[0, 1], rz[1, 0], rz[1, 1] = c, -s, s, c
-            R = R @ rz
-        t = t + R @ self.ee
-        tip = t + R @ self.tip
-        self._last_R = R
-        return tip, -R[:, 2], axes, origins
-
-    def tip_x(self, q: np.ndarray) -> np.ndarray:
-        """The tool frame's x axis (world), i.e. the yaw of the cup about its axis."""
-        self.forward(q)
-        return self._last_R[:, 0].copy()
-
-    def jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        tip, axis, axes, origins = self.forward(q)
-        J = np.empty((6, ARM_DOF))
-        J[:3] = _cross(axes, tip - origins).T  # linear
-        J[3:] = axes.T  # angular
-        return tip, axis, J
+        if not (0 < self.servo_position_gain <= 1 and 0 < self.servo_velocity_gain <= 1):
+            raise ValueError("ArmConfig servo gains must be in (0, 1]")
+        if not self.start_tolerance > 0:
+            raise ValueError("ArmConfig.start_tolerance must be > 0")
 
 
 @dataclass
@@ -123,12 +88,20 @@ class Contact:
 
 @dataclass
 class MoveResult:
-    """How a move ended: ``completed`` or stopped early by ``stop`` (contact) or a collision."""
+    """How a move ended: ``completed`` or stopped early by ``stop`` (contact) or a collision.
+
+    ``collision`` is a dynamic ``Contact`` (execute, drive) or a kinematic ``Collision`` (sweeps);
+    ``link`` names the arm link (or the held parcel) either way. ``tracking_error`` (rad, joints) and
+    ``tip_error`` (m, tool tip) are the largest gaps between the commanded and the driven state.
+    """
 
     completed: bool
     steps: int
-    collision: Contact | None = None
+    collision: Contact | Collision | None = None
     stopped_by: object | None = None
+    link: str | None = None
+    tracking_error: float = 0.0
+    tip_error: float = 0.0
 
 
 def approach_orientation(axis: np.ndarray, yaw: float = 0.0) -> np.ndarray:
@@ -146,8 +119,10 @@ def approach_orientation(axis: np.ndarray, yaw: float = 0.0) -> np.ndarray:
 class Gen3Arm:
     """A Gen3 with the suction tool, fixed on its pedestal in an existing pybullet client."""
 
-    def __init__(self, client: int, config: ArmConfig | None = None) -> None:
+    def __init__(self, client: int, config: ArmConfig | None = None,
+                 planner_config: PlannerConfig | None = None, limits: JointLimits = GEN3_LIMITS) -> None:
         self.client = client
+        self.limits = limits
         self.config = config or ArmConfig()
         if not URDF_PATH.exists():
             write_urdf()
@@ -176,9 +151,13 @@ class Gen3Arm:
         self.q = np.asarray(self.config.home, dtype=np.float64).copy()
         self.qd = np.zeros(ARM_DOF)
         self.sim_time = 0.0
+        self.qdd = np.zeros(ARM_DOF)  # measured (finite difference of qd) while executing
+        self.command: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (q, qd, qdd) being servoed
+        self.efforts = np.array([j[6] for j in JOINTS])  # N m, motor torque limits
         self.set_joints(self.q)
         self._collides = True
         self.set_collision(False)
+        self.planner = MotionPlanner(self, client, planner_config)
 
     def set_collision(self, enabled: bool) -> None:
         """Whether the links take part in the dynamics' contacts. Off while idle or sweeping (sweeps
@@ -211,10 +190,14 @@ class Gen3Arm:
 
     # --- state -------------------------------------------------------------------------------------
     def set_joints(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
+        """Place the arm kinematically (only while the world is not being stepped: IK, planning, sweeps).
+        The motors are re-aimed at ``q`` too, so a later world step holds the arm there instead of
+        pulling it back to the last executed target."""
         qd = np.zeros(ARM_DOF) if qd is None else qd
         p.resetJointStatesMultiDof(self.body, self._joint_list, [[float(v)] for v in q],
                                    targetVelocities=[[float(v)] for v in qd], physicsClientId=self.client)
         self.q, self.qd = np.array(q, dtype=np.float64), np.array(qd, dtype=np.float64)
+        self._servo(self.q, np.zeros(ARM_DOF))
 
     def home(self) -> None:
         self.set_joints(np.asarray(self.config.home, dtype=np.float64))
@@ -235,8 +218,8 @@ class Gen3Arm:
         return out
 
     # --- inverse kinematics ------------------------------------------------------------------------
-    def ik(self, position: Sequence[float], axis: Sequence[float], seed: np.ndarray | None = None,
-           x_axis: Sequence[float] | None = None) -> np.ndarray | None:
+    def ik(self, position: Sequence[float] | np.ndarray, axis: Sequence[float] | np.ndarray,
+           seed: np.ndarray | None = None, x_axis: Sequence[float] | np.ndarray | None = None) -> np.ndarray | None:
         """Joint angles putting the tool tip at ``position`` with its approach axis along ``axis``.
 
         pybullet's null-space IK (joint limits, rest pose = seed) gives initial guesses for a few tool
@@ -250,23 +233,24 @@ class Gen3Arm:
         saved_q, saved_qd = self.q.copy(), self.qd.copy()
         seed = self.q.copy() if seed is None else np.asarray(seed, dtype=np.float64)
         target = np.asarray(position, dtype=np.float64)
-        axis = np.asarray(axis, dtype=np.float64)
-        axis = axis / np.linalg.norm(axis)
+        ax = np.asarray(axis, dtype=np.float64)
+        ax = ax / np.linalg.norm(ax)
+        xa: np.ndarray | None = None
         if x_axis is not None:
-            x_axis = np.asarray(x_axis, dtype=np.float64)
-            x_axis = x_axis - axis * (x_axis @ axis)
-            x_axis = x_axis / np.linalg.norm(x_axis)
+            xa = np.asarray(x_axis, dtype=np.float64)
+            xa = xa - ax * (xa @ ax)
+            xa = xa / np.linalg.norm(xa)
         ranges = (self.upper - self.lower).tolist()
         best: tuple[float, np.ndarray] | None = None
         try:
             def guesses() -> Iterator[np.ndarray]:
                 yield seed
-                for k in range(1 if x_axis is not None else cfg.yaw_candidates):
+                for k in range(1 if xa is not None else cfg.yaw_candidates):
                     self.set_joints(seed)
-                    if x_axis is not None:
-                        orn = Rotation.from_matrix(np.column_stack([x_axis, np.cross(axis, x_axis), axis])).as_quat()
+                    if xa is not None:
+                        orn = Rotation.from_matrix(np.column_stack([xa, np.cross(ax, xa), ax])).as_quat()
                     else:
-                        orn = approach_orientation(axis, 2 * math.pi * k / cfg.yaw_candidates)
+                        orn = approach_orientation(ax, 2 * math.pi * k / cfg.yaw_candidates)
                     sol = p.calculateInverseKinematics(
                         self.body, self.tip_link, target.tolist(), orn.tolist(),
                         lowerLimits=self.lower.tolist(), upperLimits=self.upper.tolist(), jointRanges=ranges,
@@ -275,15 +259,15 @@ class Gen3Arm:
                     yield np.clip(np.array(sol[:ARM_DOF]), self.lower, self.upper)
 
             for guess in guesses():
-                q = self._refine(guess, target, axis, seed, x_axis)
+                q = self._refine(guess, target, ax, seed, xa)
                 if q is None:
                     continue
                 self.set_joints(q)
                 pos, quat = self.tip_pose()
                 reached = Rotation.from_quat(quat).as_matrix()[:, 2]
-                yaw_ok = x_axis is None or Rotation.from_quat(quat).as_matrix()[:, 0] @ x_axis >= math.cos(cfg.ik_angle_tol)
+                yaw_ok = xa is None or Rotation.from_quat(quat).as_matrix()[:, 0] @ xa >= math.cos(cfg.ik_angle_tol)
                 if (np.linalg.norm(pos - target) <= cfg.ik_position_tol and yaw_ok
-                        and math.acos(float(np.clip(reached @ axis, -1.0, 1.0))) <= cfg.ik_angle_tol):
+                        and math.acos(float(np.clip(reached @ ax, -1.0, 1.0))) <= cfg.ik_angle_tol):
                     cost = float(np.abs(q - seed).max())
                     if best is None or cost < best[0]:
                         best = (cost, q)
@@ -294,82 +278,84 @@ class Gen3Arm:
         return None if best is None else best[1]
 
     def _refine(self, q: np.ndarray, target: np.ndarray, axis: np.ndarray, rest: np.ndarray,
-                x_axis: np.ndarray | None = None, iterations: int = 60, damping: float = 0.02
-                ) -> np.ndarray | None:
-        """Damped least squares on (position, axis[, yaw]) within joint limits, null-space pull to rest."""
-        tol_p, tol_a = 0.25 * self.config.ik_position_tol, 0.25 * self.config.ik_angle_tol
-        for _ in range(iterations):
-            tip, cur_axis, J = self.kin.jacobian(q)
-            e_pos = target - tip
-            e_rot = _cross(cur_axis, axis)
-            if x_axis is not None:
-                cur_x = self.kin._last_R[:, 0]
-                e_x = _cross(cur_x, x_axis)
-                if (np.linalg.norm(e_pos) < tol_p and np.linalg.norm(e_rot) < math.sin(tol_a)
-                        and np.linalg.norm(e_x) < math.sin(tol_a) and cur_axis @ axis > 0 and cur_x @ x_axis > 0):
-                    return q
-                if cur_x @ x_axis > 0:  # standard small-angle orientation error over all three axes
-                    e_y = _cross(_cross(cur_axis, cur_x), _cross(axis, x_axis))
-                    e_rot = 0.5 * (e_rot + e_x + e_y)
-                else:  # yaw near the antipode: turn about the tool axis first
-                    e_rot = e_rot + 0.5 * cur_axis
-            elif np.linalg.norm(e_pos) < tol_p and np.linalg.norm(e_rot) < math.sin(tol_a) and cur_axis @ axis > 0:
-                return q
-            if cur_axis @ axis < 0:  # pointing backwards: rotate about any perpendicular
-                e_rot = _cross(cur_axis, np.array([1.0, 0.0, 0.0]) if abs(cur_axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
-            # without a yaw target the rotation about the tool axis is free: drop it from the task
-            Ja = J[3:] if x_axis is not None else J[3:] - np.outer(cur_axis, cur_axis @ J[3:])
-            A = np.vstack([J[:3], Ja])
-            e = np.concatenate([e_pos, e_rot])
-            JJt = A @ A.T + damping**2 * np.eye(6)
-            dq = A.T @ np.linalg.solve(JJt, e)
-            N = np.eye(ARM_DOF) - A.T @ np.linalg.solve(JJt, A)
-            dq += N @ (0.1 * (rest - q))
-            step = np.abs(dq).max()
-            if step > 0.3:
-                dq *= 0.3 / step
-            q = np.clip(q + dq, self.lower, self.upper)
-        return None
+                x_axis: np.ndarray | None = None, iterations: int = 60, damping: float = 0.02,
+                tolerance: float = 0.25) -> np.ndarray | None:
+        """Damped least squares on (position, axis[, yaw]) within joint limits, null-space pull to rest;
+        converged at ``tolerance`` times the configured IK tolerances (``Gen3Kinematics.refine``)."""
+        return self.kin.refine(q, target, axis, rest, self.lower, self.upper,
+                               tolerance * self.config.ik_position_tol, tolerance * self.config.ik_angle_tol,
+                               x_axis, iterations, damping)
 
-    def cartesian_path(self, start_q: np.ndarray, points: np.ndarray, axis: np.ndarray) -> list[np.ndarray] | None:
-        """IK along a polyline of tip positions, each seeded by the previous answer (None if any fails)."""
+    def cartesian_path(self, start_q: np.ndarray, points: np.ndarray, axis: np.ndarray,
+                       x_axis: Sequence[float] | None = None) -> list[np.ndarray] | None:
+        """IK along a polyline of tip positions, each seeded by the previous answer (None if any fails).
+        ``x_axis`` also holds the cup's yaw fixed along the way."""
         path, q = [], start_q
+        axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+        x = None if x_axis is None else np.asarray(x_axis, dtype=np.float64)
+        if x is not None:
+            x = x - axis * (x @ axis)
+            x = x / np.linalg.norm(x)
         for point in points:
-            q = self.ik(point, axis, seed=q)
-            if q is None:
-                return None
+            target = np.asarray(point, dtype=np.float64)
+            # neighbouring points: damped least squares from the previous answer usually converges in a
+            # few steps (the numpy kinematics match pybullet's to 1e-5 m, tested); converge far below
+            # the IK tolerance, as IK noise would show as joint-path curvature that slows a
+            # path_trajectory through these points. Fall back to the full, verified IK otherwise.
+            fine = self._refine(q, target, axis, q, x, tolerance=PATH_IK_TOLERANCE)
+            if fine is None:
+                full = self.ik(target, axis, seed=q, x_axis=x)
+                if full is None:
+                    return None
+                fine = self._refine(full, target, axis, full, x, tolerance=PATH_IK_TOLERANCE)
+                fine = full if fine is None else fine
+            q = fine
             path.append(q)
         return path
 
-    # --- motion ------------------------------------------------------------------------------------
-    def trajectory(self, waypoints: Sequence[np.ndarray], dt: float, speed_scale: float = 1.0,
-                   min_duration: float = 0.0) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """(q, qd) at every control step along the joint-space polyline current -> ``waypoints``.
+    def cartesian_trajectory(self, start_q: np.ndarray, points: Sequence[Sequence[float]], axis: Sequence[float],
+                             dt: float, speed_scale: float = 1.0, x_axis: Sequence[float] | None = None,
+                             step: float = CARTESIAN_STEP) -> tuple[Trajectory | None, str | None]:
+        """The tool tip along the polyline start tip -> ``points`` with its approach axis held at ``axis``
+        (and its yaw at ``x_axis`` when given): IK every ``step`` m, then ``timing.path_trajectory``, so
+        the tip stays on the line and the axis does not tilt between IK points.
 
-        One cosine velocity profile covers the whole polyline (no stop at inner waypoints), timed so
-        the peak joint speed is ``joint_speed * speed_scale`` (or slower, to last ``min_duration``).
+        Returns (trajectory, None) or (None, reason): an IK failure or a jump between IK branches.
         """
-        vmax = self.config.joint_speed * speed_scale
-        pts = np.vstack([self.q[None, :], np.asarray(waypoints, dtype=np.float64).reshape(-1, ARM_DOF)])
-        seg = np.abs(np.diff(pts, axis=0)).max(axis=1)
-        total = float(seg.sum())
-        if total < 1e-9:
-            return
-        knots = np.concatenate([[0.0], np.cumsum(seg)]) / total  # path parameter at each waypoint
-        duration = max(math.pi / 2 * total / vmax, min_duration)
-        n = max(1, math.ceil(duration / dt))
-        duration = n * dt
-        for k in range(1, n + 1):
-            s = 0.5 * (1 - math.cos(math.pi * k / n))
-            sd = 0.5 * math.pi / duration * math.sin(math.pi * k / n)
-            i = min(int(np.searchsorted(knots, s, side="right")) - 1, len(seg) - 1)
-            while i > 0 and knots[i + 1] - knots[i] <= 0:
-                i -= 1
-            width = max(knots[i + 1] - knots[i], 1e-12)
-            u = (s - knots[i]) / width
-            dqds = (pts[i + 1] - pts[i]) / width
-            yield pts[i] + u * (pts[i + 1] - pts[i]), sd * dqds
+        q = np.asarray(start_q, dtype=np.float64)
+        tip = self.kin.forward(q)[0]
+        corners = np.vstack([tip[None], np.asarray(points, dtype=np.float64).reshape(-1, 3)])
+        approach = np.asarray(axis, dtype=np.float64)
+        legs = []
+        for k, (a, b) in enumerate(itertools.pairwise(corners)):  # each straight leg rest-to-rest
+            n = max(1, math.ceil(float(np.linalg.norm(b - a)) / step))
+            # the leg's first point is its own start, solved precisely too: an arm a little off the line
+            # (within the IK tolerance) first settles onto it by a tiny move, rather than the spline
+            # taking that offset as a kink
+            qs = self.cartesian_path(q, a + (b - a) * (np.arange(0, n + 1)[:, None] / n), approach, x_axis)
+            if qs is None:
+                return None, f"ik failed along leg {k} of the line"
+            path = np.array(qs)
+            jump = float(np.abs(np.diff(np.vstack([q[None], path]), axis=0)).max())
+            if jump > MAX_IK_JUMP:
+                return None, f"ik jumped {jump:.2f} rad between neighbouring points on leg {k}"
+            if np.abs(path[0] - q).max() > 1e-9:
+                legs.append(joint_trajectory(q, [path[0]], self.limits.scaled(speed_scale), dt))
+            legs.append(path_trajectory(path, self.limits, dt, speed_scale))
+            q = path[-1]
+        return concatenate(legs), None
 
+    def free_trajectory(self, q_goal: np.ndarray, dt: float, attached: Attachment | None = None,
+                        ignore_bodies: Iterable[int] = (), speed_scale: float = 1.0
+                        ) -> tuple[Trajectory | None, str | None]:
+        """A planned (collision-free) and timed free-space move from ``arm.q`` to ``q_goal``:
+        (trajectory, None), or (None, the planner's reason)."""
+        path = self.planner.plan(self.q, q_goal, attached=attached, ignore_bodies=ignore_bodies)
+        if path is None:
+            return None, self.planner.last_failure
+        return joint_trajectory(self.q, path[1:], self.limits.scaled(speed_scale), dt), None
+
+    # --- contacts -----------------------------------------------------------------------------------
     def contacts(self) -> list[Contact]:
         return [Contact(c[3], c[2], np.array(c[6]), float(c[9]))
                 for c in p.getContactPoints(bodyA=self.body, physicsClientId=self.client)]
@@ -380,108 +366,135 @@ class Gen3Arm:
                 return c
         return None
 
-    def first_penetration(self, ignore_bodies: set[int], depth: float = 1e-3) -> Contact | None:
-        """Narrow-phase check of the arm against bodies whose AABB overlaps the arm's (no full
-        collision pass over the pile, whose parcel-parcel pairs are irrelevant here)."""
-        c = self.client
-        boxes = np.array([p.getAABB(self.body, j, physicsClientId=c) for j in range(-1, self._num_links)])
-        lo, hi = boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)
-        near = {o[0] for o in (p.getOverlappingObjects(lo.tolist(), hi.tolist(), physicsClientId=c) or ())}
-        for body in sorted(near - {self.body} - set(ignore_bodies)):
-            for cp in p.getClosestPoints(self.body, body, 0.0, physicsClientId=c):
-                # the base never moves and sits in its pedestal (queries ignore collision filters)
-                if cp[3] == -1 or (body == self.pedestal and cp[3] == 0):
-                    continue
-                if cp[8] < -depth:
-                    return Contact(cp[3], cp[2], np.array(cp[5]), float(cp[9]))
-        return None
+    def first_penetration(self, ignore_bodies: Iterable[int] = (), depth: float = 1e-3) -> Collision | None:
+        """The first link pressing more than ``depth`` into another body (or into the arm itself), as
+        the arm is placed now; a narrow-phase check of only the bodies near the arm."""
+        return self.planner.placed_collision(ignore_bodies=ignore_bodies, margin=-depth)
 
-    def sweep(self, waypoints: Sequence[np.ndarray], dt: float, ignore_bodies: set[int] = frozenset(),
-              check: bool = True, on_step: Callable[[], object] | None = None) -> MoveResult:
-        """Free-space move checked by collision detection at each control step (the pile is at rest).
+    # --- planned, time-parameterised motion (timing.Trajectory) ------------------------------------
+    def tool_motion(self, q=None, qd=None, qdd=None):
+        """Tool-tip (position, R, v, omega, a, alpha), world frame, at (q, qd, qdd); defaults to the
+        arm's measured state (``q``, ``qd``, ``qdd``). See ``Gen3Kinematics.tool_motion``."""
+        return self.kin.tool_motion(self.q if q is None else q, self.qd if qd is None else qd,
+                                    self.qdd if qdd is None else qdd)
 
-        Any arm or tool contact with the scene is a collision here: nothing should be touched.
-        """
-        steps = 0
-        for q, qd in self.trajectory(waypoints, dt):
-            self.set_joints(q, qd)
-            steps += 1
-            self.sim_time += dt
-            if on_step is not None:
-                on_step()
-            if not check:
-                continue
-            hit = self.first_penetration(ignore_bodies)
-            if hit is not None:
-                self.qd = np.zeros(ARM_DOF)
-                return MoveResult(False, steps, hit)
-        self.qd = np.zeros(ARM_DOF)
-        return MoveResult(True, steps)
+    def _check_start(self, traj: Trajectory) -> None:
+        if not isinstance(traj, Trajectory) or len(traj) < 1:
+            raise ValueError("traj must be a non-empty timing.Trajectory")
+        gap = float(np.abs(traj.q[0] - self.q).max())
+        if gap > self.config.start_tolerance:
+            raise ValueError(f"traj starts {gap:.3f} rad from the arm's state (tolerance "
+                             f"{self.config.start_tolerance} rad); time it from arm.q")
 
-    def drive(self, waypoints: Sequence[np.ndarray], step_world: Callable[[], None], dt: float,
-              speed_scale: float = 1.0, min_duration: float = 0.0, stop: Callable[[list[Contact]], object] | None = None,
-              on_step: Callable[[], object] | None = None, allowed_links: set[int] | None = None
-              ) -> MoveResult:
-        """Dynamic move: set the servo target each step, step the world, read contacts.
+    def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
+        states = p.getJointStates(self.body, self._joint_list, physicsClientId=self.client)
+        return np.array([s[0] for s in states]), np.array([s[1] for s in states])
 
-        ``stop(contacts)`` returning a truthy value ends the move (a guarded move); ``on_step()``
+    def _servo(self, q: np.ndarray, qd: np.ndarray) -> None:
+        cfg = self.config
+        p.setJointMotorControlArray(self.body, self._joint_list, p.POSITION_CONTROL, targetPositions=q.tolist(),
+                                    targetVelocities=qd.tolist(), forces=self.efforts.tolist(),
+                                    positionGains=[cfg.servo_position_gain] * ARM_DOF,
+                                    velocityGains=[cfg.servo_velocity_gain] * ARM_DOF, physicsClientId=self.client)
+
+    def execute(self, traj: Trajectory, step_world: Callable[[], None],
+                stop: Callable[[list[Contact]], object] | None = None, on_step: Callable[[], object] | None = None,
+                allowed_links: set[int] | None = None) -> MoveResult:
+        """Dynamic move: pybullet's position motors (torque-limited to the Gen3's efforts) servo the
+        arm to each sample's (q, qd) and ``step_world()`` advances one physics step of ``traj.dt``; the
+        joints are never reset, so contacts and a held parcel's constraint see a physically driven arm.
+
+        After each step ``arm.q``/``arm.qd`` are the measured joint state, ``arm.qdd`` its finite
+        difference and ``arm.command`` the sample being servoed. ``stop(contacts)`` returning a truthy
+        value ends the move (a guarded move: the motors then hold the reached position); ``on_step()``
         returning truthy also ends it (e.g. a seal broke). A non-allowed link pressing on the scene
-        ends it as a collision.
+        harder than ``collision_force`` ends it as a collision.
         """
+        self._check_start(traj)
+        engine_dt = p.getPhysicsEngineParameters(physicsClientId=self.client)["fixedTimeStep"]
+        if abs(engine_dt - traj.dt) > 1e-9:
+            raise ValueError(f"traj.dt {traj.dt} s differs from the physics step {engine_dt} s")
         allowed = self.tool_links | {self.tip_link} if allowed_links is None else allowed_links
         self.set_collision(True)
         try:
-            return self._drive(waypoints, step_world, dt, speed_scale, min_duration, stop, on_step, allowed)
+            return self._execute(traj, step_world, stop, on_step, allowed)
         finally:
             self.set_collision(False)
 
-    def _drive(self, waypoints, step_world, dt, speed_scale, min_duration, stop, on_step, allowed) -> MoveResult:
+    def _execute(self, traj, step_world, stop, on_step, allowed) -> MoveResult:
+        dt = traj.dt
+        measured = np.empty((len(traj), ARM_DOF))
         steps = 0
-        for q, qd in self.trajectory(waypoints, dt, speed_scale, min_duration):
-            self.set_joints(q, qd)
-            p.setJointMotorControlArray(self.body, self.joints.tolist(), p.VELOCITY_CONTROL,
-                                        targetVelocities=qd.tolist(),
-                                        forces=[self.config.hold_force] * ARM_DOF,
-                                        physicsClientId=self.client)
+
+        def errors() -> tuple[float, float]:  # largest joint and tool-tip gaps over the steps taken
+            if steps == 0:
+                return 0.0, 0.0
+            q_run, q_cmd_run = measured[1:steps + 1], traj.q[1:steps + 1]
+            tips = np.linalg.norm(self.kin.tips(q_run) - self.kin.tips(q_cmd_run), axis=1)
+            return float(np.abs(q_run - q_cmd_run).max()), float(tips.max())
+        for k in range(1, len(traj)):
+            q_cmd, qd_cmd = traj.q[k], traj.qd[k]
+            # pybullet's motor sets v_new = v_target + kp (q_target - q) / dt and then q_new = q + v_new dt;
+            # aiming at the step's start sample with the step's mean velocity lands on q_cmd (no lag)
+            self._servo(traj.q[k - 1], (q_cmd - traj.q[k - 1]) / dt)
             step_world()
             steps += 1
             self.sim_time += dt
+            q, qd = self._read_state()
+            self.qdd = (qd - self.qd) / dt
+            self.q, self.qd = q, qd
+            self.command = (q_cmd, qd_cmd, traj.qdd[k])
+            measured[k] = q
+
             contacts = self.contacts()
             hit = self._collision(contacts, allowed)
+            reason = None
+            if hit is None and stop is not None:
+                reason = stop(contacts)
+            if hit is None and not reason and on_step is not None:
+                reason = on_step()
+            if hit is not None or reason:
+                self._servo(q, np.zeros(ARM_DOF))  # brake: the motors hold the reached position
+                joint_err, tip_err = errors()
+                return MoveResult(False, steps, collision=hit, stopped_by=reason or None,
+                                  link=None if hit is None else self.link_names.get(hit.link, "base_link"),
+                                  tracking_error=joint_err, tip_error=tip_err)
+        joint_err, tip_err = errors()
+        return MoveResult(True, steps, tracking_error=joint_err, tip_error=tip_err)
+
+    def sweep_trajectory(self, traj: Trajectory, attached: Attachment | None = None,
+                         ignore_bodies: Iterable[int] = (), on_step: Callable[[], object] | None = None,
+                         check: bool = True, margin: float = 0.0) -> MoveResult:
+        """Kinematic free-space move: the arm is placed at every sample of ``traj`` while the world is
+        NOT stepped (the pile is at rest), and each sample is checked by ``self.planner`` for any link,
+        the tool or the ``attached`` parcel (carried along at the tool pose) coming within ``margin``
+        of another body. Stops at the first collision, which ``collision``/``link`` name."""
+        self._check_start(traj)
+        ignore = set(ignore_bodies)
+        steps = 0
+        for k in range(1, len(traj)):
+            self.set_joints(traj.q[k], traj.qd[k])
+            self.qdd = traj.qdd[k]
+            steps += 1
+            self.sim_time += traj.dt
+            hit = self.planner.placed_collision(attached, ignore, margin) if check else None
+            if attached is not None and not check:
+                self.planner.place_attachment(attached)
+            if on_step is not None:
+                on_step()
             if hit is not None:
                 self.qd = np.zeros(ARM_DOF)
-                return MoveResult(False, steps, collision=hit)
-            if stop is not None:
-                reason = stop(contacts)
-                if reason:
-                    self.set_joints(q)
-                    return MoveResult(False, steps, stopped_by=reason)
-            if on_step is not None:
-                reason = on_step()
-                if reason:
-                    return MoveResult(False, steps, stopped_by=reason)
-        self.qd = np.zeros(ARM_DOF)
-        self.set_joints(self.q)
+                return MoveResult(False, steps, collision=hit, link=hit.link)
+        self.qd, self.qdd = np.zeros(ARM_DOF), np.zeros(ARM_DOF)
         return MoveResult(True, steps)
 
-
-    def hold(self, steps: int, step_world: Callable[[], None], dt: float) -> None:
-        """Keep the current configuration while the world runs ``steps`` steps."""
-        self.set_collision(True)
-        try:
-            self._hold(steps, step_world, dt)
-        finally:
-            self.set_collision(False)
-
-    def _hold(self, steps: int, step_world: Callable[[], None], dt: float) -> None:
-        for _ in range(steps):
-            self.set_joints(self.q)
-            p.setJointMotorControlArray(self.body, self.joints.tolist(), p.VELOCITY_CONTROL,
-                                        targetVelocities=[0.0] * ARM_DOF,
-                                        forces=[self.config.hold_force] * ARM_DOF, physicsClientId=self.client)
-            step_world()
-            self.sim_time += dt
-        self.set_joints(self.q)
+    def hold(self, steps: int, step_world: Callable[[], None], dt: float) -> MoveResult:
+        """Keep the current configuration while the world runs ``steps`` steps: driven by the motors
+        like ``execute`` (never reset), with contacts on every link allowed (nothing ends the hold)."""
+        if steps < 1:
+            return MoveResult(True, 0)
+        every_link = set(range(-1, self._num_links))
+        return self.execute(hold_trajectory(self.q, steps * dt, dt), step_world, allowed_links=every_link)
 
 
 def reachability(arm: Gen3Arm, points: np.ndarray, axis: Sequence[float] = (0.0, 0.0, -1.0),

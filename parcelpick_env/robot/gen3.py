@@ -1,9 +1,10 @@
 """A Kinova Gen3 7-DoF URDF with a suction tool, written from Kinova's published figures.
 
-No registry ships a bare Gen3 URDF, so the kinematics come from GEN3_URDF_V12 (DESIGN.md, 'Kinova Gen3
-7-DoF') and every link is a capsule along the segment to the next joint. The tool is a flange, a rod
-and a cup; ``tool_tip`` sits at the cup lip, centred on the cup axis, with +z pointing out of the cup
-(the approach direction), so a suction candidate (p, n) is reached with the tip at p and z = -n.
+No registry ships a bare Gen3 URDF, so the kinematics come from Kinova's GEN3_URDF_V12 (the figures
+below; the cell's moves: docs/cell.md) and every link is a capsule along the segment to the next joint.
+The tool is a flange, a rod and a cup; ``tool_tip`` sits at the cup lip, centred on the cup axis, with
++z pointing out of the cup (the approach direction), so a suction candidate (p, n) is reached with the
+tip at p and z = -n.
 
 ``python -m parcelpick_env.robot.gen3`` regenerates the committed ``gen3_suction.urdf``.
 """
@@ -16,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from parcelpick_env.suction.config import CELL_CUP_RADIUS
 
 URDF_PATH = Path(__file__).with_name("gen3_suction.urdf")
 
@@ -48,7 +51,7 @@ class SuctionToolSpec:
     flange_length: float = 0.012
     rod_radius: float = 0.008
     rod_length: float = 0.14
-    cup_radius: float = 0.020
+    cup_radius: float = CELL_CUP_RADIUS
     cup_length: float = 0.015
     mass: float = 0.25
 

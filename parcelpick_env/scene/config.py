@@ -28,14 +28,15 @@ def check_pile_fields(config: Any) -> None:
 
 @dataclass(frozen=True)
 class PileConfig:
-    """Pile generation settings (DESIGN.md, 'Scenes').
+    """Pile generation settings (docs/piles.md: the figures and their reasons).
 
-    ``stacked`` drops the parcels, with random orientations, from a staggered column above the bin
-    so they fall into a pile together; ``drop_height`` is the extra gap added above each parcel's
-    non-overlapping start slot. ``scattered`` lays them flat-side down without footprint overlap
-    (``scatter_gap`` apart) and only lets them settle. Friction is uniform in ``friction_range``.
-    A stacked pile re-drops parcels that bounced out of the bin up to ``redrop_rounds`` times; what
-    still ends outside is removed and listed in ``scene.meta``.
+    ``stacked`` drops the parcels, with random orientations, from staggered start slots inside
+    temporary chute walls that continue the bin's walls up to ``chute_height`` (m above the floor);
+    the chute is removed once the heap is at rest, and what then slides out is ``lost``.
+    ``drop_height`` is the gap added above each parcel's non-overlapping start slot.
+    ``scattered`` lays them flat-side down without footprint overlap (``scatter_gap`` apart) and only
+    lets them settle; beyond the bin's capacity (``pile.SCATTER_CAPACITY`` in the default bin) parcels
+    that find no room are ``skipped``. Friction is uniform in ``friction_range``.
     """
 
     num_parcels: int = 10
@@ -44,11 +45,12 @@ class PileConfig:
     split: str = "train"
     bin: BinSpec = field(default_factory=BinSpec)
     friction_range: tuple[float, float] = (0.3, 1.0)
-    drop_height: float = 0.05  # m above the non-overlapping start slot
+    drop_height: float = 0.02  # m above the non-overlapping start slot
+    stack_tilt_deg: float = 25.0  # stacked: std of the tumble away from lying on a face, degrees
+    chute_height: float = 0.60  # m above the floor: top of the temporary chute walls (raised if the slots need it)
     scatter_gap: float = 0.01  # m between scattered footprints
     scatter_flat_prob: float = 0.85  # probability of resting on the largest face when scattered
-    scatter_attempts: int = 200  # rejection-sampling tries per parcel before giving up on it
-    redrop_rounds: int = 2  # stacked: parcels that fell out are dropped onto the pile again, this often
+    scatter_yaw_jitter_deg: float = 15.0  # scattered parcels lie square to the walls, give or take this
     max_settle_steps: int | None = None  # None: the simulator's SimConfig.max_settle_steps
 
     def __post_init__(self) -> None:
@@ -64,7 +66,12 @@ class PileConfig:
             raise ValueError(f"scatter_gap must be in [0, 0.2] m, got {self.scatter_gap}")
         if not 0 <= self.scatter_flat_prob <= 1:
             raise ValueError(f"scatter_flat_prob must be in [0, 1], got {self.scatter_flat_prob}")
-        require_int("PileConfig", "scatter_attempts", self.scatter_attempts, lo=1)
-        require_int("PileConfig", "redrop_rounds", self.redrop_rounds, 0, 10)
+        if not 0 <= self.scatter_yaw_jitter_deg <= 45:
+            raise ValueError(f"scatter_yaw_jitter_deg must be in [0, 45], got {self.scatter_yaw_jitter_deg}")
+        if not 0 <= self.stack_tilt_deg <= 180:
+            raise ValueError(f"stack_tilt_deg must be in [0, 180], got {self.stack_tilt_deg}")
+        if not self.bin.wall_height < self.chute_height <= 3:
+            raise ValueError(f"chute_height must be above the bin's walls ({self.bin.wall_height} m) and "
+                             f"at most 3 m, got {self.chute_height}")
         if self.max_settle_steps is not None:
             require_int("PileConfig", "max_settle_steps", self.max_settle_steps, lo=1)

@@ -1,31 +1,37 @@
-"""Building a settled pile of parcels in a bin, deterministically from a seed.
+"""Building a settled pile of parcels in a bin, deterministically from a seed (docs/piles.md).
 
-``stacked``: every parcel gets a uniformly random orientation and a start slot above the bin,
-chosen greedily as the lowest of a few random spots where its rotated bounding box overlaps no
-earlier one (nor the walls). All are released together from ``drop_height`` above their slots,
-so the lower ones land first and the upper ones fall onto them: a pile, without the cost of
-settling wave after wave. Parcels that bounce out are dropped again onto the settled pile
-(``PileConfig.redrop_rounds`` waves), which keeps most of a full bin's parcels.
+``stacked`` works like a parcel induction chute: temporary chute walls continue the bin's inner
+walls up to ``PileConfig.chute_height`` (or higher, to clear the start slots) and every parcel
+starts inside them, lying on a face with a random yaw and a random tumble (``stack_tilt_deg``), in
+a slot chosen greedily as the lowest of ``STACK_CANDIDATES`` random spots where its rotated bounding
+box overlaps no earlier one. A wave (``WAVE_SIZE`` parcels at most; larger requests come in equal
+waves) is released together, so the lower ones land first and the upper ones fall onto them. Once
+the last wave has settled the chute is taken away and the pile settles again under the nominal
+solver: parcels heaped above the rim may slide out then; they are removed and counted as ``lost``.
 
-``scattered``: parcels are laid flat-side down (mostly) with random yaw, placed by rejection
-sampling so their footprints (convex hulls of the rotated mesh projected on the floor) do not
-overlap, then settled. Parcels that cannot be fitted are skipped and counted in
-``scene.meta['skipped']``.
+``scattered`` lays parcels flat-side down (mostly) on the bin floor without footprint overlap, about
+square to the walls (``scatter_yaw_jitter_deg``), largest footprint first. Each footprint (the
+convex hull of the rotated mesh, projected on the floor) may go anywhere in the region where it
+fits, computed exactly as the inner floor minus the Minkowski sums of the footprints already placed
+(no rejection sampling: a spot is found whenever one exists for the yaw; the yaw turned 90 degrees
+and square yaws are tried next). It takes the corner of that region nearest a randomly chosen bin
+corner, so it lies against walls or neighbours and the free floor stays in one piece. Up to
+``SCATTER_CAPACITY`` parcels always fit the default tote (tested); beyond it a parcel that finds no
+room is ``skipped``: the shortfall is reported in ``scene.meta`` and the env's ``info``.
 
-In both layouts the world is stepped until motion stops (``Simulator.settle``), parcels that end
-outside the bin are removed, and the returned ``Scene`` holds mesh-frame poses with
-``object_id == index``. For speed the drop runs with ``DROP_SOLVER_ITERATIONS`` solver iterations
-(a doubled timestep was tried too: more jitter, no net gain); the nominal settings are restored
-for a final settle, so the returned pile is at rest under the simulator's own physics. Parcels
-that fall out are removed as soon as they are below the rim and outside the walls, so the
-settle does not wait for them to stop rolling on the ground.
+In both layouts the world is stepped until the pile stops moving (``_settle_culling``), parcels whose
+centre of mass ends outside the bin (``BinSpec.contains``, the one definition) are removed, and the
+returned ``Scene`` holds mesh-frame poses with ``object_id == index``. ``scene.meta`` reports
+``requested = placed + skipped + lost``. The chute phase runs with ``DROP_SOLVER_ITERATIONS`` solver
+iterations (10 never came to rest: the heap jitters); the nominal settings are restored for the
+final settle, so the returned pile rests under the simulator's own physics.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pybullet as pb
 import shapely
-import shapely.affinity
 from scipy.spatial.transform import Rotation
 
 from parcelpick_env.assets.library import AssetLibrary
@@ -34,9 +40,18 @@ from parcelpick_env.scene.config import PileConfig
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 
-DROP_SOLVER_ITERATIONS = 10  # solver iterations while the pile falls; nominal ones settle it last
-STACK_CANDIDATES = 8  # start spots tried per stacked parcel; the lowest wins (a wide, low pile)
-OUTSIDE_TOLERANCE = 0.005  # m: a COM this far beyond the inner walls counts as outside the bin
+DROP_SOLVER_ITERATIONS = 30  # solver iterations while the pile falls; fewer jitter and never come to rest
+REST_WINDOW = 1 / 6  # s: at rest when the net motion over this window is within SimConfig's velocity tolerances
+DROP_TIME = 1.5  # s of simulated time the chute phase may take at most (parcels fall ~1 m in 0.45 s)
+SETTLE_TIME = 2.0  # s the pile may take to settle once the chute is gone (and for a scattered layout)
+STACK_CANDIDATES = 64  # start spots tried per stacked parcel; the lowest wins (a dense, low start)
+WAVE_SIZE = 20  # stacked parcels per wave at most: larger requests come in equal waves, each settling on the last
+STACK_JITTER = 0.01  # m: start heights this close count as equally low
+SCATTER_CAPACITY = 6  # scattered parcels that always fit the default tote, any object set (docs/piles.md)
+# a scattered parcel rests on a side only if it would not topple: tipping angle atan(narrowest base / height)
+# at least this (a 0.27 g nudge); envelopes on their edges and long tubes on their ends lie flat instead
+SIDE_TIP_ANGLE_DEG = 15.0
+SCATTER_YAW_STEPS = np.array([0.0, np.pi / 2])  # scattered: the drawn yaw, turned 90 deg, then square to the walls
 
 
 def _choose_assets(pool: list[ParcelAsset], n: int, rng: np.random.Generator) -> list[ParcelAsset]:
@@ -47,10 +62,16 @@ def _choose_assets(pool: list[ParcelAsset], n: int, rng: np.random.Generator) ->
     return [pool[i] for i in order[:n]]
 
 
-def _random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return q * np.where(q[:, 3:4] < 0, -1.0, 1.0)
+def _chute_orientations(n: int, cfg: PileConfig, rng: np.random.Generator) -> np.ndarray:
+    """Parcels come off an infeed conveyor on a face (mostly the largest) and tumble a little down the
+    chute: random yaw, then a tilt about a random horizontal axis of ``stack_tilt_deg`` (std)."""
+    tilts = [_flat_tilt(cfg, rng) for _ in range(n)]
+    yaws = rng.uniform(0, 2 * np.pi, size=n)
+    heading = rng.uniform(0, 2 * np.pi, size=n)
+    angle = np.radians(cfg.stack_tilt_deg) * rng.normal(size=n)
+    tumble = Rotation.from_rotvec(np.stack([np.cos(heading), np.sin(heading), np.zeros(n)], 1) * angle[:, None])
+    quats = (tumble * Rotation.from_euler("z", yaws[:, None]) * Rotation.concatenate(tilts)).as_quat()
+    return quats * np.where(quats[:, 3:4] < 0, -1.0, 1.0)
 
 
 def _inner_bounds(spec: BinSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -61,26 +82,24 @@ def _inner_bounds(spec: BinSpec) -> tuple[np.ndarray, np.ndarray]:
 
 def _stacked_poses(assets: list[ParcelAsset], cfg: PileConfig, rng: np.random.Generator,
                    occupied: list[tuple[np.ndarray, np.ndarray]] = ()):
-    """Start poses: random orientations, stacked as non-overlapping world AABBs, lowest of a few spots.
-
-    ``occupied`` holds world AABBs (lo, hi) already in the bin, e.g. a settled pile to drop onto.
-    """
+    """Start poses inside the chute: tumbled orientations, non-overlapping world AABBs, lowest of many
+    spots. ``occupied`` holds the world AABBs (lo, hi) of the pile already in the bin."""
     spec = cfg.bin
     lo, hi = _inner_bounds(spec)
-    quats = _random_quaternions(rng, len(assets))
-    boxes_lo: list[np.ndarray] = [np.asarray(lo_, dtype=np.float64) for lo_, _ in occupied]  # world AABBs
-    boxes_hi: list[np.ndarray] = [np.asarray(hi_, dtype=np.float64) for _, hi_ in occupied]
+    quats = _chute_orientations(len(assets), cfg, rng)
+    boxes_lo: list[np.ndarray] = [np.asarray(b[0], dtype=np.float64) for b in occupied]
+    boxes_hi: list[np.ndarray] = [np.asarray(b[1], dtype=np.float64) for b in occupied]
     positions = []
     for asset, q in zip(assets, quats):
         pts = Rotation.from_quat(q).apply(asset.mesh.convex_hull.vertices)
         rlo, rhi = pts.min(0), pts.max(0)
-        # xy so the AABB stays inside the walls when it fits, else centred over the bin.
-        xy_lo = np.where(rhi[:2] - rlo[:2] < hi - lo, lo - rlo[:2], (lo + hi) / 2 - (rlo[:2] + rhi[:2]) / 2)
-        xy_hi = np.where(rhi[:2] - rlo[:2] < hi - lo, hi - rhi[:2], xy_lo)
-        candidates = rng.uniform(xy_lo, xy_hi, size=(STACK_CANDIDATES, 2))
+        # Every parcel fits the chute in some orientation; in this one it may not, then it is centred
+        # and starts above the rim (it falls in once it turns).
         fits = np.all(rhi[:2] - rlo[:2] < hi - lo)
-        base = spec.floor_z if fits else spec.floor_z + spec.wall_height
-        z = np.full(STACK_CANDIDATES, base - rlo[2])
+        xy_lo = lo - rlo[:2] if fits else (lo + hi) / 2 - (rlo[:2] + rhi[:2]) / 2
+        xy_hi = hi - rhi[:2] if fits else xy_lo
+        candidates = rng.uniform(xy_lo, xy_hi, size=(STACK_CANDIDATES, 2))
+        z = np.full(len(candidates), spec.floor_z - rlo[2])
         if boxes_lo:
             blo, bhi = np.asarray(boxes_lo), np.asarray(boxes_hi)
             c_lo = candidates[:, None, :] + rlo[:2]
@@ -88,7 +107,7 @@ def _stacked_poses(assets: list[ParcelAsset], cfg: PileConfig, rng: np.random.Ge
             overlap = np.all((c_lo < bhi[None, :, :2]) & (c_hi > blo[None, :, :2]), axis=2)
             tops = np.where(overlap, bhi[None, :, 2], -np.inf).max(axis=1)
             z = np.maximum(z, tops - rlo[2])
-        best = int(np.argmin(z))
+        best = int(np.argmin(z + STACK_JITTER * rng.random(len(z))))  # lowest, ties broken at random
         position = np.array([candidates[best, 0], candidates[best, 1], z[best] + cfg.drop_height])
         positions.append(position)
         boxes_lo.append(position + rlo)
@@ -96,86 +115,135 @@ def _stacked_poses(assets: list[ParcelAsset], cfg: PileConfig, rng: np.random.Ge
     return np.asarray(positions), quats
 
 
-def _flat_orientation(asset: ParcelAsset, cfg: PileConfig, rng: np.random.Generator) -> np.ndarray:
-    """Largest face down (body z is the thin axis by construction) unless the dice say otherwise."""
+def _flat_tilt(cfg: PileConfig, rng: np.random.Generator, extents: np.ndarray | None = None) -> Rotation:
+    """Largest face down (body z is the thin axis by construction) unless the dice say otherwise.
+
+    With the parcel's body ``extents``, a side it could not stand on is refused (it lies flat): one whose
+    tipping angle, atan(narrowest base side / height), is under ``SIDE_TIP_ANGLE_DEG``. Such a parcel (an
+    envelope on its edge, a long thin tube on its end) topples at the first nudge of a real infeed.
+    """
     if rng.random() < cfg.scatter_flat_prob:
-        tilt = Rotation.identity()
-    else:  # rest on a side: turn the long (x) or middle (y) axis upright... or a cylinder on its end
-        tilt = Rotation.from_euler("y" if rng.random() < 0.5 else "x", np.pi / 2)
-    yaw = Rotation.from_euler("z", rng.uniform(0, 2 * np.pi))
-    return (yaw * tilt).as_quat()
+        return Rotation.identity()
+    # rest on a side: turn the long (x) or middle (y) axis upright... or a cylinder on its end
+    upright = 0 if rng.random() < 0.5 else 1
+    if extents is not None:
+        e = np.asarray(extents, dtype=np.float64)
+        base = np.delete(e, upright)
+        if np.degrees(np.arctan2(base.min(), e[upright])) < SIDE_TIP_ANGLE_DEG:
+            return Rotation.identity()
+    return Rotation.from_euler("y" if upright == 0 else "x", np.pi / 2)
+
+
+def _free_region(footprint: np.ndarray, placed: list[np.ndarray], lo: np.ndarray, hi: np.ndarray,
+                 gap: float) -> shapely.Geometry:
+    """Where the footprint's origin may go: inside the walls (``gap`` clear) and ``gap`` clear of every
+    placed footprint. Each obstacle grows by the mirrored footprint (Minkowski sum of convex hulls)."""
+    fmin, fmax = footprint.min(0), footprint.max(0)
+    box = shapely.box(*(lo - fmin + gap / 2), *(hi - fmax - gap / 2))
+    if box.is_empty or not box.is_valid:
+        return shapely.Polygon()
+    if not placed:
+        return box
+    grown = [shapely.convex_hull(shapely.multipoints((obstacle[:, None, :] - footprint[None]).reshape(-1, 2)))
+             .buffer(gap, quad_segs=2) for obstacle in placed]
+    return box.difference(shapely.union_all(grown))
 
 
 def _scattered_poses(assets: list[ParcelAsset], cfg: PileConfig, rng: np.random.Generator):
-    """Non-overlapping flat placements; returns (kept asset indices, positions, quaternions)."""
-    spec = cfg.bin
-    lo, hi = _inner_bounds(spec)
-    placed: list[shapely.Geometry] = []
-    kept, positions, quats = [], [], []
-    for i, asset in enumerate(assets):
-        q = _flat_orientation(asset, cfg, rng)
-        hull = asset.mesh.convex_hull.vertices
-        rotated = Rotation.from_quat(q).apply(hull)
-        footprint = shapely.convex_hull(shapely.multipoints(rotated[:, :2]))
-        fmin, fmax = rotated[:, :2].min(0), rotated[:, :2].max(0)
-        xlo, xhi = lo - fmin + cfg.scatter_gap / 2, hi - fmax - cfg.scatter_gap / 2
-        if np.any(xlo > xhi):
-            continue  # larger than the bin floor in this orientation
-        tries = rng.uniform(xlo, xhi, size=(cfg.scatter_attempts, 2))
-        for xy in tries:
-            candidate = shapely.affinity.translate(footprint, xy[0], xy[1])
-            if not any(candidate.distance(other) < cfg.scatter_gap for other in placed):
-                placed.append(candidate)
-                kept.append(i)
-                positions.append([xy[0], xy[1], spec.floor_z - rotated[:, 2].min() + 0.002])
-                quats.append(q)
-                break
-    return kept, np.asarray(positions).reshape(-1, 3), np.asarray(quats).reshape(-1, 4)
+    """Non-overlapping flat placements, largest footprint first; returns (kept indices, positions, quats)."""
+    lo, hi = _inner_bounds(cfg.bin)
+    tilts = [_flat_tilt(cfg, rng, asset.extents) for asset in assets]
+    yaws = rng.integers(0, 4, size=len(assets)) * np.pi / 2 + np.radians(cfg.scatter_yaw_jitter_deg) * rng.uniform(
+        -1, 1, len(assets))
+    mirror = rng.choice([-1.0, 1.0], size=2)  # which corner of the bin the layout starts from
+    hulls = [asset.mesh.convex_hull.vertices for asset in assets]
+    areas = [shapely.convex_hull(shapely.multipoints(t.apply(h)[:, :2])).area for t, h in zip(tilts, hulls)]
+    placed: list[np.ndarray] = []
+    poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for i in np.argsort(areas, kind="stable")[::-1]:
+        for yaw in np.concatenate([yaws[i] + SCATTER_YAW_STEPS, SCATTER_YAW_STEPS]):  # drawn, then square
+            rot = Rotation.from_euler("z", yaw) * tilts[i]
+            rotated = rot.apply(hulls[i])
+            footprint = rotated[:, :2]
+            free = _free_region(footprint, placed, lo, hi, cfg.scatter_gap)
+            if free.is_empty:
+                continue
+            # The free region's corner nearest the pile's start corner (lowest in y, then x, after the
+            # mirror): the parcel lies against walls or neighbours, so the free floor stays in one piece.
+            corners = shapely.get_coordinates(shapely.boundary(free))
+            key = corners * mirror
+            xy = corners[np.lexsort((key[:, 0], np.round(key[:, 1], 3)))[0]]
+            placed.append(footprint + xy)
+            poses[int(i)] = (np.array([xy[0], xy[1], cfg.bin.floor_z - rotated[:, 2].min() + 0.002]), rot.as_quat())
+            break
+    kept = sorted(poses)
+    positions = np.asarray([poses[i][0] for i in kept]).reshape(-1, 3)
+    quats = np.asarray([poses[i][1] for i in kept]).reshape(-1, 4)
+    return kept, positions, quats
 
 
-def _inside_bin(sim: Simulator, body_id: int, asset: ParcelAsset, spec: BinSpec) -> bool:
-    pos, orn = sim.body_pose(body_id)
-    com = Rotation.from_quat(orn).apply(asset.com) + pos
-    lo, hi = _inner_bounds(spec)
-    tol = OUTSIDE_TOLERANCE
-    return bool(np.all(com[:2] > lo - tol) and np.all(com[:2] < hi + tol) and com[2] > spec.floor_z - tol)
+def _add_chute(sim: Simulator, spec: BinSpec, top: float) -> int:
+    """Temporary chute walls: the bin's walls continued from the rim up to ``top`` above the floor."""
+    t = spec.wall_thickness
+    h = top - spec.wall_height
+    sx, sy = spec.inner_size
+    cx, cy = spec.center_xy
+    zc = spec.floor_z + spec.wall_height + h / 2
+    half = [[t / 2, sy / 2 + t, h / 2], [t / 2, sy / 2 + t, h / 2], [sx / 2, t / 2, h / 2], [sx / 2, t / 2, h / 2]]
+    centres = [[cx - sx / 2 - t / 2, cy, zc], [cx + sx / 2 + t / 2, cy, zc],
+               [cx, cy - sy / 2 - t / 2, zc], [cx, cy + sy / 2 + t / 2, zc]]
+    col = pb.createCollisionShapeArray([pb.GEOM_BOX] * 4, halfExtents=half, collisionFramePositions=centres,
+                                       physicsClientId=sim.client)
+    body = pb.createMultiBody(0.0, col, -1, physicsClientId=sim.client)
+    pb.changeDynamics(body, -1, lateralFriction=0.3, restitution=0.0, physicsClientId=sim.client)
+    return body
 
 
-def _fallen_out(sim: Simulator, body_id: int, asset: ParcelAsset, spec: BinSpec) -> bool:
-    """Below the rim and outside the walls: it can never come back into the bin."""
-    pos, orn = sim.body_pose(body_id)
-    com = Rotation.from_quat(orn).apply(asset.com) + pos
-    return com[2] < spec.floor_z + spec.wall_height and not _inside_bin(sim, body_id, asset, spec)
+def _com_poses(sim: Simulator, bodies: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """World centre-of-mass positions (n, 3) and orientations (n, 4): pybullet's own base frame."""
+    poses = [pb.getBasePositionAndOrientation(b, physicsClientId=sim.client) for b in bodies]
+    return (np.array([q[0] for q in poses], dtype=np.float64).reshape(-1, 3),
+            np.array([q[1] for q in poses], dtype=np.float64).reshape(-1, 4))
 
 
-def _settle_culling(sim: Simulator, bodies: list[int], assets: list[ParcelAsset],
-                    config: PileConfig) -> tuple[int, set[int]]:
-    """Settle, removing parcels that fell out of the bin as soon as they do (they would only roll on).
+def _settle_culling(sim: Simulator, live: dict[int, ParcelAsset], spec: BinSpec, cap: int,
+                    solver_iterations: int | None = None) -> tuple[int, set[int], bool]:
+    """Step until the pile stops moving, removing parcels that fell out of the bin (below the rim,
+    outside the walls) as soon as they do, so it does not wait for them to roll on the ground.
 
-    The drop phase runs with fewer solver iterations; a final phase at the nominal count follows.
-    Returns the steps taken and the removed bodies.
+    At rest means no parcel's net motion over the last ``REST_WINDOW`` exceeds the simulator's velocity
+    tolerances (``SimConfig.linear_velocity_tol``/``angular_velocity_tol`` times the window): solver
+    jitter that goes nowhere (thin mailers on hulls) does not count, sliding does. Bullet piles also
+    creep by a few mm/s for seconds, so ``cap`` bounds the wait. Mutates ``live``; returns the steps
+    taken, the removed bodies and whether it came to rest within ``cap`` steps.
     """
-    cap = config.max_settle_steps or sim.config.max_settle_steps
-    chunk = 8 * sim.config.check_interval
-    live = dict(zip(bodies, assets))
-    fallen: set[int] = set()
-    steps = 0
-    drop = dict(solver_iterations=min(DROP_SOLVER_ITERATIONS, sim.config.solver_iterations))
-    for overrides in (drop, {}):
-        with sim.physics_overrides(**overrides):
-            phase = 0
-            while phase < cap:
-                n = sim.settle(list(live), max_steps=min(chunk, cap - phase))
-                phase += n
-                for body, asset in list(live.items()):
-                    if _fallen_out(sim, body, asset, config.bin):
-                        sim.remove(body)
-                        fallen.add(body)
-                        del live[body]
-                if n < chunk or not live:
-                    break
-        steps += phase
-    return steps, fallen
+    with sim.physics_overrides(solver_iterations=solver_iterations):
+        dt = sim.config.timestep
+        chunk = max(1, int(round(REST_WINDOW / dt)))
+        max_move = sim.config.linear_velocity_tol * chunk * dt
+        max_turn = sim.config.angular_velocity_tol * chunk * dt
+        fallen: set[int] = set()
+        steps, rest = 0, False
+        bodies = list(live)
+        pos, orn = _com_poses(sim, bodies)
+        while steps < cap and live and not rest:
+            n = min(chunk, cap - steps)
+            sim.step(n)
+            steps += n
+            new_pos, new_orn = _com_poses(sim, bodies)
+            turned = 2 * np.arccos(np.clip(np.abs(np.sum(new_orn * orn, axis=1)), 0.0, 1.0))
+            rest = bool(np.all(np.linalg.norm(new_pos - pos, axis=1) < max_move) and np.all(turned < max_turn))
+            out = (new_pos[:, 2] < spec.floor_z + spec.wall_height) & ~spec.contains(new_pos)
+            if out.any():
+                for body in np.asarray(bodies)[out].tolist():
+                    sim.remove(body)
+                    fallen.add(body)
+                    del live[body]
+                rest = False
+                bodies = list(live)
+                new_pos, new_orn = new_pos[~out], new_orn[~out]
+            pos, orn = new_pos, new_orn
+    return steps, fallen, rest or not live
 
 
 def build_pile(sim: Simulator, config: PileConfig, seed: int, library: AssetLibrary | None = None) -> Scene:
@@ -186,40 +254,50 @@ def build_pile(sim: Simulator, config: PileConfig, seed: int, library: AssetLibr
     pool = library.assets(config.split, config.object_set)
     if not pool:
         raise ValueError(f"the library has no {config.split!r} assets in object set {config.object_set!r}")
+    spec = config.bin
     rng = np.random.default_rng(int(seed))
     assets = _choose_assets(pool, config.num_parcels, rng)
     frictions = rng.uniform(*config.friction_range, size=len(assets))
-    if config.layout == "stacked":
-        positions, quats = _stacked_poses(assets, config, rng)
-        kept = list(range(len(assets)))
+    limit = config.max_settle_steps or sim.config.max_settle_steps
+    drop_iterations = min(DROP_SOLVER_ITERATIONS, sim.config.solver_iterations)
+    drop_cap = min(limit, int(round(DROP_TIME / sim.config.timestep)))
+    settle_cap = min(limit, int(round(SETTLE_TIME / sim.config.timestep)))
+    sim.reset()
+    sim.add_bin(spec)
+    body_of: dict[int, int] = {}
+    live: dict[int, ParcelAsset] = {}
+    steps, fallen = 0, set()
+    if config.layout == "stacked":  # waves through the chute, then take it away
+        waves = np.array_split(np.arange(len(assets)), -(-len(assets) // WAVE_SIZE))
+        for wave in waves:
+            occupied = [sim.aabb(b) for b in live]
+            positions, quats = _stacked_poses([assets[i] for i in wave], config, rng, occupied)
+            for k, i in enumerate(wave.tolist()):
+                body_of[i] = sim.add_parcel(assets[i], positions[k], quats[k], frictions[i])
+                live[body_of[i]] = assets[i]
+            top = max(config.chute_height, float(max(sim.aabb(b)[1][2] for b in live)) - spec.floor_z)
+            chute = _add_chute(sim, spec, spec.floor_z + top)
+            more, out, _ = _settle_culling(sim, live, spec, drop_cap, drop_iterations)
+            steps, fallen = steps + more, fallen | out
+            sim.remove(chute)
+        skipped = 0
     else:
         kept, positions, quats = _scattered_poses(assets, config, rng)
+        for k, i in enumerate(kept):
+            body_of[i] = sim.add_parcel(assets[i], positions[k], quats[k], frictions[i])
+            live[body_of[i]] = assets[i]
+        skipped = len(assets) - len(kept)
+    more, out, at_rest = _settle_culling(sim, live, spec, settle_cap)
+    steps, fallen = steps + more, fallen | out
 
-    sim.reset()
-    sim.add_bin(config.bin)
-    body_of: dict[int, int] = {i: sim.add_parcel(assets[i], positions[k], quats[k], frictions[i])
-                               for k, i in enumerate(kept)}
-    steps, fallen = _settle_culling(sim, list(body_of.values()), [assets[i] for i in body_of], config)
-    redropped = 0
-    for _ in range(config.redrop_rounds if config.layout == "stacked" else 0):
-        lost = [i for i, body in body_of.items() if body in fallen]
-        if not lost:
-            break
-        # Drop the parcels that fell out again, onto the pile as it now lies.
-        occupied = [sim.aabb(body) for body in body_of.values() if body not in fallen]
-        re_pos, re_quats = _stacked_poses([assets[i] for i in lost], config, rng, occupied)
-        for k, i in enumerate(lost):
-            body_of[i] = sim.add_parcel(assets[i], re_pos[k], re_quats[k], frictions[i])
-        redropped += len(lost)
-        more, fallen = _settle_culling(sim, list(body_of.values()), [assets[i] for i in body_of], config)
-        steps += more
-    at_rest = sim.is_at_rest([b for b in body_of.values() if b not in fallen])
-
+    bodies = list(live)
+    inside = spec.contains(_com_poses(sim, bodies)[0]) if bodies else np.zeros(0, bool)
+    held = {b for b, ok in zip(bodies, inside) if ok}
     parcels: list[ParcelState] = []
-    removed: list[str] = []
+    lost: list[str] = []
     for i, body in body_of.items():
-        if body in fallen or not _inside_bin(sim, body, assets[i], config.bin):
-            removed.append(assets[i].asset_id)
+        if body not in held:
+            lost.append(assets[i].asset_id)
             if sim.has_body(body):
                 sim.remove(body)
             continue
@@ -228,13 +306,14 @@ def build_pile(sim: Simulator, config: PileConfig, seed: int, library: AssetLibr
                                    position=pos, orientation=orn, friction=float(frictions[i])))
     meta = {
         "requested": config.num_parcels,
-        "skipped": config.num_parcels - len(kept),
-        "removed_outside": removed,
-        "redropped": redropped,
+        "placed": len(parcels),
+        "skipped": skipped,
+        "lost": len(lost),
+        "lost_assets": lost,
         "settle_steps": steps,
         "at_rest": at_rest,
     }
-    return Scene(parcels=parcels, bin=config.bin, seed=int(seed), layout=config.layout,
+    return Scene(parcels=parcels, bin=spec, seed=int(seed), layout=config.layout,
                  object_set=config.object_set, split=config.split, meta=meta)
 
 

@@ -15,8 +15,8 @@ from parcelpick_env.assets.parcel import ParcelAsset
 class BinSpec:
     """An open box whose inner floor is the world plane z = ``floor_z``, centred on ``center_xy``."""
 
-    inner_size: tuple[float, float] = (0.70, 0.50)
-    wall_height: float = 0.25
+    inner_size: tuple[float, float] = (0.70, 0.45)
+    wall_height: float = 0.30
     wall_thickness: float = 0.02
     center_xy: tuple[float, float] = (0.0, 0.0)
     floor_z: float = 0.0
@@ -35,8 +35,12 @@ class BinSpec:
     def contains(self, points: np.ndarray, margin: float = 0.0, floor_tolerance: float = 0.01) -> np.ndarray:
         """Mask of points above the bin's inner floor, within ``margin`` of its inner walls in x and y.
 
-        The camera also sees the floor around the bin; this is the region of interest a real cell crops
-        to. ``margin=wall_thickness`` keeps the wall tops; ``floor_tolerance`` absorbs depth noise.
+        The one definition of "inside the bin": with the defaults, a parcel is in the bin when its
+        centre of mass is (pile building, the env's lost-parcel check), and it is the region of
+        interest a real cell crops its camera cloud to. A centre of mass cannot lie inside a wall, and
+        one over the wall top is balancing on the rim, so it is out. ``margin=wall_thickness`` keeps the
+        wall tops; ``floor_tolerance`` (1 cm) absorbs depth noise and is less than the 2 cm between the
+        inner floor and the ground a fallen parcel lies on.
         """
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         half = np.asarray(self.inner_size, dtype=np.float64) / 2 + margin

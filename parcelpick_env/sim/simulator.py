@@ -7,13 +7,16 @@ shapes are created from vertex arrays; visuals are written once per asset as one
 (pybullet's EGL renderer only draws meshes loaded from files) into a per-simulator temporary
 directory that ``close()`` removes.
 
+The pybullet client is connected at first use, not in the constructor, and EGL clients come from the
+process's one owner (``sim/egl.py``), which keeps them valid whatever other simulators close and refuses
+EGL in a fork of a process that had already started it.
+
 pybullet reports a body's pose as its inertial (centre-of-mass) frame. Everything public here
 speaks the parcel's mesh frame instead: ``body_pose``/``set_body_pose`` convert.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import logging
 import shutil
@@ -21,7 +24,7 @@ import tempfile
 import weakref
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 import pybullet as pb
@@ -30,6 +33,7 @@ import trimesh
 from parcelpick_env.assets.parcel import ParcelAsset
 from parcelpick_env.scene.scene import BinSpec
 from parcelpick_env.sim.config import SimConfig
+from parcelpick_env.sim.egl import EGL_OWNER, connect_plain
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +69,8 @@ def _asset_geometry(asset: ParcelAsset, max_hull_vertices: int) -> dict:
     hull = mesh.convex_hull.vertices
     if len(hull) > max_hull_vertices:
         hull = hull[_farthest_points(hull, max_hull_vertices)]
-    face_colours = np.asarray(mesh.visual.face_colors, dtype=np.uint8)[:, :3]
+    visual: Any = mesh.visual  # ColorVisuals: assets carry per-face colours, never textures
+    face_colours = np.asarray(visual.face_colors, dtype=np.uint8)[:, :3]
     palette, face_palette = np.unique(face_colours, axis=0, return_inverse=True)
     face_palette = face_palette.reshape(-1)
     parts = []
@@ -84,57 +89,53 @@ def _asset_geometry(asset: ParcelAsset, max_hull_vertices: int) -> dict:
     return geometry
 
 
-_EGL_BROKEN = False  # set once per process when the plugin cannot be loaded
-# pybullet's EGL plugin keeps process-wide state: when any EGL client of the process disconnects, the
-# other live clients' EGL renders come back empty. Each close starts a new epoch; simulators created in
-# an earlier epoch report ``egl_current`` False.
-_EGL_EPOCH = 0
-
-
-def _load_egl(client: int) -> int:
-    """Load pybullet's EGL renderer plugin into ``client``; returns the plugin id or -1."""
-    global _EGL_BROKEN
-    if _EGL_BROKEN:
-        return -1
-    spec = importlib.util.find_spec("eglRenderer")  # pybullet ships it as a top-level extension module
-    plugin = -1
-    if spec is not None and spec.origin:
-        try:
-            plugin = pb.loadPlugin(spec.origin, "_eglRendererPlugin", physicsClientId=client)
-        except pb.error:
-            plugin = -1
-    if plugin < 0:
-        _EGL_BROKEN = True
-        log.warning("pybullet's EGL renderer plugin could not be loaded; cameras will use the TinyRenderer")
-    return plugin
-
-
 class Simulator:
     """Owns one pybullet DIRECT client. Use as a context manager or call ``close()``."""
 
     def __init__(self, config: SimConfig | None = None) -> None:
         self.config = config or SimConfig()
-        self.client = pb.connect(pb.DIRECT)
-        if self.client < 0:
-            raise RuntimeError("could not start a pybullet DIRECT client")
+        self._client: int | None = None  # connected at first use (see ``client``)
+        self._closed = False
+        self.egl_plugin = -1
         self._tmpdir = Path(tempfile.mkdtemp(prefix="parcelpick_sim_"))
+        # Removed by close(), or when garbage-collected, or at exit of a process (a pool worker) that never closes.
+        self._remove_tmpdir = weakref.finalize(self, shutil.rmtree, self._tmpdir, ignore_errors=True)
         self._com: dict[int, np.ndarray] = {}  # body id -> COM in the body (mesh) frame
         self._files: dict[int, tuple[ParcelAsset, list[str]]] = {}  # id(asset) -> (asset, OBJ paths)
         self.steps_taken = 0
-        self.egl_plugin = _load_egl(self.client) if self.config.egl_rendering else -1
-        self._egl_epoch = _EGL_EPOCH
-        self._configure()
+
+    @property
+    def client(self) -> int:
+        """The pybullet client id, connected (with EGL when configured) at first use, so that constructing a
+        simulator, or an env, starts no renderer (``sim/egl.py``: EGL does not survive fork)."""
+        if self._client is None:
+            self._require_open()
+            if self.config.egl_rendering:
+                self._client, self.egl_plugin = EGL_OWNER.acquire()
+            else:
+                self._client = connect_plain()
+            self._configure()
+        elif self.egl_plugin >= 0:
+            EGL_OWNER.activate(self._client)  # every pybullet call on this client may touch its GL context
+        return self._client
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
     @property
     def egl_enabled(self) -> bool:
         """True when OpenGL (EGL) rendering is available to cameras on this client."""
+        if self._closed:
+            return False
+        _ = self.client  # connects: the plugin is loaded with the client
         return self.egl_plugin >= 0
 
     @property
     def egl_current(self) -> bool:
-        """False once another EGL simulator of this process has closed: this one's EGL renders are then
-        empty (pybullet limitation, see ``_EGL_EPOCH``), so long-lived caches must make a new simulator."""
-        return self.egl_plugin >= 0 and self._egl_epoch == _EGL_EPOCH
+        """True while this simulator's EGL client is live in the process's owner (``sim/egl.py``), which
+        keeps every EGL client's renderer valid whatever other simulators close; False once closed."""
+        return self.egl_enabled and EGL_OWNER.is_live(self._client)
 
     # ----------------------------------------------------------------- world
     def _configure(self) -> None:
@@ -154,18 +155,19 @@ class Simulator:
         self._configure()
 
     def close(self) -> None:
-        global _EGL_EPOCH
-        if self.client is not None and self.client >= 0:
+        """Release the client: an EGL client goes back to the process's owner (emptied, for reuse; closing
+        it would blank every other EGL client's renders), a plain one disconnects. Idempotent."""
+        client, self._client, self._closed = self._client, None, True
+        if client is not None:
             try:
                 if self.egl_plugin >= 0:
-                    _EGL_EPOCH += 1
-                    pb.unloadPlugin(self.egl_plugin, physicsClientId=self.client)
-                    self.egl_plugin = -1
-                pb.disconnect(physicsClientId=self.client)
+                    EGL_OWNER.release(client)
+                else:
+                    pb.disconnect(physicsClientId=client)
             except pb.error:  # already disconnected
                 pass
-        self.client = None
-        shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self.egl_plugin = -1
+        self._remove_tmpdir()
 
     def __enter__(self) -> "Simulator":
         return self
@@ -180,7 +182,7 @@ class Simulator:
             pass
 
     def _require_open(self) -> None:
-        if self.client is None:
+        if self._closed:
             raise RuntimeError("Simulator is closed")
 
     # ----------------------------------------------------------------- time
@@ -276,13 +278,13 @@ class Simulator:
                    friction: float) -> int:
         """Add a dynamic parcel with its mesh frame at ``position``/``orientation`` (xyzw)."""
         self._require_open()
-        position = np.asarray(position, dtype=np.float64)
-        orientation = np.asarray(orientation, dtype=np.float64)
-        if position.shape != (3,) or orientation.shape != (4,):
-            raise ValueError(f"position must be (3,) and orientation (4,) xyzw, got {position.shape}, {orientation.shape}")
-        if not (np.isfinite(position).all() and np.isfinite(orientation).all()):
+        pos = np.asarray(position, dtype=np.float64)
+        orn = np.asarray(orientation, dtype=np.float64)
+        if pos.shape != (3,) or orn.shape != (4,):
+            raise ValueError(f"position must be (3,) and orientation (4,) xyzw, got {pos.shape}, {orn.shape}")
+        if not (np.isfinite(pos).all() and np.isfinite(orn).all()):
             raise ValueError("parcel pose must be finite")
-        norm = np.linalg.norm(orientation)
+        norm = np.linalg.norm(orn)
         if norm < 1e-9:
             raise ValueError("orientation quaternion has zero norm")
         if not (np.isfinite(friction) and friction >= 0):
@@ -291,7 +293,7 @@ class Simulator:
         com = np.asarray(asset.com, dtype=np.float64)
         body = pb.createMultiBody(
             baseMass=float(asset.mass), baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
-            basePosition=position.tolist(), baseOrientation=(orientation / norm).tolist(),
+            basePosition=pos.tolist(), baseOrientation=(orn / norm).tolist(),
             baseInertialFramePosition=com.tolist(), physicsClientId=self.client,
         )
         if body < 0:
@@ -359,13 +361,12 @@ class Simulator:
     def set_body_pose(self, body_id: int, position: Sequence[float], orientation: Sequence[float]) -> None:
         """Teleport a body so its mesh frame is at ``position``/``orientation`` (xyzw); zeroes velocity."""
         self._require_open()
-        position = np.asarray(position, dtype=np.float64)
-        orientation = np.asarray(orientation, dtype=np.float64)
-        orientation = orientation / np.linalg.norm(orientation)
+        pos = np.asarray(position, dtype=np.float64)
+        orn = np.asarray(orientation, dtype=np.float64)
+        orn = orn / np.linalg.norm(orn)
         com = self._com.get(body_id)
         if com is not None:
-            R = np.asarray(pb.getMatrixFromQuaternion(orientation.tolist()), dtype=np.float64).reshape(3, 3)
-            position = position + R @ com
-        pb.resetBasePositionAndOrientation(body_id, position.tolist(), orientation.tolist(),
-                                           physicsClientId=self.client)
+            R = np.asarray(pb.getMatrixFromQuaternion(orn.tolist()), dtype=np.float64).reshape(3, 3)
+            pos = pos + R @ com
+        pb.resetBasePositionAndOrientation(body_id, pos.tolist(), orn.tolist(), physicsClientId=self.client)
         pb.resetBaseVelocity(body_id, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)

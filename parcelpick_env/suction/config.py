@@ -1,16 +1,47 @@
-"""Every constant of suction scoring, in one place (DESIGN.md, 'Suction scoring')."""
+"""Every constant of suction scoring, in one place (docs/labels.md)."""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
+
+from parcelpick_env.config_checks import require, require_finite_numbers, require_int, require_positive_numbers
+
+SEAL_MODELS = ("spring", "suctionnet", "bellows")
+# The cell's physical cup: one 40 mm (r = 20 mm) 1.5-fold bellows cup (docs/cell.md, "Cup and vacuum").
+# Sized for the parcel mix: it seals tubes down to R ~ 30 mm; the env, the tool URDF and the mass bound read it.
+CELL_CUP_RADIUS = 0.020
+
+
+@dataclass(frozen=True)
+class BellowsCup:
+    """The compliance of a single 1.5-fold bellows cup (docs/cup_seal.md), figures for a 40-50 mm cup.
+
+    The lip radius is ``SuctionConfig.cup_radius`` (one cup radius shared by the seal, the wrench
+    and the holding model); the cell uses ``CELL_CUP_RADIUS`` (20 mm) with these figures. Lengths in metres, angles in degrees.
+    """
+
+    stroke: float = 0.010  # axial compression the bellows takes up (lip pressed in, or surface rising into the cup)
+    max_bend: float = 25.0  # lip tilt (deg) the bellows absorbs: the plane fitted to the rim vs the cup plane
+    lip_compliance: float = 0.004  # +- out-of-plane give of lip and lowest fold about that plane (edges, curvature)
+    leak_gap: float = 0.003  # leak tolerance: a lip this far above the surface at first touch no longer closes
+
+    def __post_init__(self) -> None:
+        require_positive_numbers(self, ("stroke", "max_bend", "lip_compliance", "leak_gap"))
+        require(self.max_bend < 90.0, "BellowsCup", f"max_bend must be < 90 degrees, got {self.max_bend!r}")
+
+    @property
+    def max_bend_rad(self) -> float:
+        return math.radians(self.max_bend)
 
 
 @dataclass(frozen=True)
 class SuctionConfig:
     cup_radius: float = 0.010  # r, metres
     rim_vertices: int = 72
-    seal_model: Literal["spring", "suctionnet"] = "spring"
+    seal_model: Literal["spring", "suctionnet", "bellows"] = "spring"
     obstruction_height: float = 0.005  # surface inside the cup disk this far above p breaks the seal
     ray_offset: float = 0.05  # rim rays start this far above the candidate along n
     max_ray_depth: float = 0.10  # a rim ray travelling further than this below the cup plane misses
@@ -24,20 +55,21 @@ class SuctionConfig:
     body_near: float = 0.100
     body_far: float = 0.300
     num_threads: int = 0  # Open3D ray-casting threads; 0 uses every core (set 1 in parallel workers)
+    bellows: BellowsCup = BellowsCup()  # the cup's compliance, read by seal_model "bellows" and contact_seal
 
     def __post_init__(self) -> None:
-        positive = {
-            "cup_radius": self.cup_radius, "material_k": self.material_k, "gravity": self.gravity,
-            "unit_mass": self.unit_mass, "tool_radius": self.tool_radius, "ray_offset": self.ray_offset,
-            "max_ray_depth": self.max_ray_depth,
-        }
-        for name, value in positive.items():
-            if not value > 0:
-                raise ValueError(f"SuctionConfig.{name} must be > 0, got {value!r}")
-        if self.rim_vertices < 8:
-            raise ValueError(f"SuctionConfig.rim_vertices must be >= 8, got {self.rim_vertices}")
-        if self.seal_model not in ("spring", "suctionnet"):
-            raise ValueError(f"SuctionConfig.seal_model must be 'spring' or 'suctionnet', got {self.seal_model!r}")
+        if isinstance(self.bellows, Mapping):  # a stored config (dataclasses.asdict) nests it as a dict
+            object.__setattr__(self, "bellows", BellowsCup(**self.bellows))
+        if not isinstance(self.bellows, BellowsCup):
+            raise ValueError(f"SuctionConfig.bellows must be a BellowsCup, got {type(self.bellows).__name__}")
+        # Finite reals first (inf, NaN, strings and bools refused, each naming its field), then their relations.
+        require_positive_numbers(self, ("cup_radius", "material_k", "gravity", "unit_mass", "tool_radius",
+                                        "ray_offset", "max_ray_depth"))
+        require_finite_numbers(self, ("obstruction_height", "tool_near", "tool_far", "body_radius", "body_near",
+                                      "body_far"))
+        require_int("SuctionConfig", "rim_vertices", self.rim_vertices, lo=8)
+        if self.seal_model not in SEAL_MODELS:
+            raise ValueError(f"SuctionConfig.seal_model must be one of {SEAL_MODELS}, got {self.seal_model!r}")
         if not 0 <= self.tool_near < self.tool_far:
             raise ValueError("SuctionConfig needs 0 <= tool_near < tool_far")
         threads = self.num_threads
@@ -49,6 +81,4 @@ class SuctionConfig:
     @property
     def torque_threshold(self) -> float:
         """tau_thr = r * k * pi (about 0.49 N m at r = 10 mm)."""
-        import math
-
         return self.cup_radius * self.material_k * math.pi

@@ -15,6 +15,7 @@ import trimesh
 
 from parcelpick_env.suction.collision import collision_scores
 from parcelpick_env.suction.config import SuctionConfig
+from parcelpick_env.suction.cup_seal import ContactSeal, bellows_seal
 from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, validate_meshes
 from parcelpick_env.suction.seal import SealScene, seal_scores
 from parcelpick_env.suction.wrench import wrench_scores
@@ -92,6 +93,22 @@ class SuctionScorer:
         object_ids = self._object_ids(object_ids, len(points))
         return self._seal(points, normals, object_ids)
 
+    def contact_seal(self, tips: np.ndarray, axes: np.ndarray, object_ids: np.ndarray) -> ContactSeal:
+        """Bellows seal of the cup where it actually is: lip centred at ``tips`` (N, 3), approaching
+        along unit ``axes`` (N, 3) (tool into the object), on each ``object_ids`` parcel's true mesh.
+
+        Unlike ``seal``, the gap between the lip and the true surface counts (a lip resting on a
+        convex hull above a wrinkled top, or hovering, leaks). Needs ``seal_model="bellows"``.
+        """
+        if self.config.seal_model != "bellows":
+            raise ValueError(f"contact_seal needs SuctionConfig(seal_model='bellows'), "
+                             f"this scorer has seal_model={self.config.seal_model!r}")
+        tips, axes = self._candidates(tips, axes, ("tips", "axes"))
+        object_ids = self._object_ids(object_ids, len(tips))
+        parts = [bellows_seal(self._seal_scene, tips[s], axes[s], object_ids[s], measure_gap=True)
+                 for s in _batch_slices(len(tips))]
+        return ContactSeal.concatenate(parts) if len(parts) != 1 else parts[0]
+
     def wrench(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
         """(N,) wrench score against gravity on a unit mass at the object's COM (0 for ids < 0)."""
         points, normals = self._candidates(points, normals)
@@ -138,6 +155,9 @@ class SuctionScorer:
 
     # ------------------------------------------------------------------ helpers
     def _seal(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
+        if self.config.seal_model == "bellows":  # the cup pressed along -n to first touch (gap 0)
+            return _in_batches(lambda p, n, i: bellows_seal(self._seal_scene, p, -n, i, measure_gap=False).quality,
+                               points, normals, object_ids)
         return _in_batches(lambda *a: seal_scores(self._seal_scene, *a), points, normals, object_ids)
 
     def _collision(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -164,14 +184,15 @@ class SuctionScorer:
             raise ValueError(f"{name} must be finite (found NaN or inf)")
         return points
 
-    def _candidates(self, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        points = self._points(points, "points")
-        normals = self._points(normals, "normals")
+    def _candidates(self, points: np.ndarray, normals: np.ndarray,
+                    names: tuple[str, str] = ("points", "normals")) -> tuple[np.ndarray, np.ndarray]:
+        points = self._points(points, names[0])
+        normals = self._points(normals, names[1])
         if len(normals) != len(points):
-            raise ValueError(f"points and normals differ in length: {len(points)} vs {len(normals)}")
+            raise ValueError(f"{names[0]} and {names[1]} differ in length: {len(points)} vs {len(normals)}")
         norms = np.linalg.norm(normals, axis=1, keepdims=True)
         if np.any(np.abs(norms - 1.0) > NORMAL_TOLERANCE):
-            raise ValueError("normals must be unit vectors (found a norm off by more than 1e-2)")
+            raise ValueError(f"{names[1]} must be unit vectors (found a norm off by more than 1e-2)")
         return points, normals / norms
 
     def _object_ids(self, object_ids: np.ndarray, count: int) -> np.ndarray:
@@ -197,10 +218,14 @@ class SuctionScorer:
         return visibility.astype(np.float32)
 
 
+def _batch_slices(count: int) -> list[slice]:
+    """Slices of at most ``MAX_BATCH`` candidates covering ``count`` (one, possibly empty, at least)."""
+    return [slice(start, start + MAX_BATCH) for start in range(0, max(count, 1), MAX_BATCH)]
+
+
 def _in_batches(fn, *arrays: np.ndarray) -> np.ndarray:
     """``fn`` over at most ``MAX_BATCH`` candidates at a time, concatenated (bounded memory)."""
     count = len(arrays[0])
     if count <= MAX_BATCH:
         return fn(*arrays)
-    return np.concatenate([fn(*(a[start:start + MAX_BATCH] for a in arrays))
-                           for start in range(0, count, MAX_BATCH)])
+    return np.concatenate([fn(*(a[s] for a in arrays)) for s in _batch_slices(count)])

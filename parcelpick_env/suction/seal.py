@@ -1,6 +1,6 @@
 """Seal score: the compliant spring model of the cup rim, projected onto the object's true mesh.
 
-DESIGN.md 'Suction scoring'. The 72 rim vertices are projected along ``-n`` by ray casting. A
+docs/labels.md, 'Seal'. The 72 rim vertices are projected along ``-n`` by ray casting. A
 candidate may only seal on ITS object, so every parcel is copied into its own cell of one ray
 scene (cells far enough apart that no ray reaches a neighbour within the accepted depth); the
 rays of a candidate on object ``k`` are shifted into cell ``k``. All ``N * (72 + interior)``

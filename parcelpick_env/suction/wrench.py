@@ -1,6 +1,6 @@
 """Wrench score: can the cup's material resist gravity's torque, and how far from vertical is it?
 
-DESIGN.md 'Suction scoring' (the paper's corrected material condition):
+docs/labels.md, 'Wrench' (the paper's corrected material condition):
 ``S = (1 - min(1, |tau_e| / tau_thr)) * (1 - a / pi)``, with ``tau_e`` the torque of a unit mass
 at the centre of mass about the contact, in the components orthogonal to the cup axis, and ``a``
 the angle between the approach ``-n`` and gravity.

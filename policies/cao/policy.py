@@ -24,7 +24,11 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[CaoNet, dict[str, Any]]:
     """Rebuild the network from a checkpoint written by ``policies.cao.train``; returns (net, checkpoint)."""
     checkpoint = read_checkpoint(path, "Cao", f"python -m policies.cao.train --data DIR --out {path}",
                                  required=("config", "state_dict"))
-    net = load_weights(CaoNet(CaoConfig.from_dict(checkpoint["config"])), checkpoint["state_dict"], path, "Cao")
+    try:
+        config = CaoConfig.from_dict(checkpoint["config"])
+    except (TypeError, ValueError) as exc:  # another policy's checkpoint (Dex-Net's has other config keys)
+        raise ValueError(f"{path} is not a Cao checkpoint: its config does not fit CaoConfig ({exc})") from exc
+    net = load_weights(CaoNet(config), checkpoint["state_dict"], path, "Cao")
     return net.eval(), checkpoint
 
 

@@ -24,10 +24,12 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from dataset.storage import open_dataset
+from parcelpick_env.cli import check_input_dir, check_output_path, run_cli
 from policies.cao.config import CaoConfig
-from policies.checkpoint_io import save_atomic
 from policies.cao.network import CaoNet, prepare_input
 from policies.cao.targets import frame_from_record, frame_targets
+from policies.checkpoint_io import save_atomic
+from policies.provenance import command_line, training_provenance
 
 
 def load_tensors(data_dir: str | os.PathLike, config: CaoConfig, max_scenes: int | None = None,
@@ -76,8 +78,11 @@ def _evaluate(net: CaoNet, x: torch.Tensor, y: torch.Tensor, batch_size: int) ->
 
 
 def train(data_dir: str | os.PathLike, out: str | os.PathLike, config: CaoConfig | None = None, seed: int = 0,
-          max_scenes: int | None = None, threads: int | None = None, progress: bool = True) -> dict[str, Any]:
+          max_scenes: int | None = None, threads: int | None = None, progress: bool = True,
+          command: str | None = None) -> dict[str, Any]:
     """Fit the network and write the checkpoint; returns the per-epoch history and timings.
+
+    ``command`` is the command line stored in the checkpoint's provenance (None: 'not recorded').
 
     ``threads`` sets torch's CPU threads for the run (restored afterwards); None keeps torch's setting.
     """
@@ -90,13 +95,13 @@ def train(data_dir: str | os.PathLike, out: str | os.PathLike, config: CaoConfig
     if threads is not None:
         torch.set_num_threads(threads)
     try:
-        return _train(data_dir, out, config, seed, max_scenes, progress)
+        return _train(data_dir, out, config, seed, max_scenes, progress, command)
     finally:
         torch.set_num_threads(previous)
 
 
 def _train(data_dir: str | os.PathLike, out: str | os.PathLike, config: CaoConfig, seed: int,
-           max_scenes: int | None, progress: bool) -> dict[str, Any]:
+           max_scenes: int | None, progress: bool, command: str | None = None) -> dict[str, Any]:
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     start = time.perf_counter()
@@ -152,6 +157,7 @@ def _train(data_dir: str | os.PathLike, out: str | os.PathLike, config: CaoConfi
         "dataset_config": {k: v for k, v in data_info["dataset_config"].items()
                            if isinstance(v, (int, float, str, bool))},
     }
+    meta["provenance"] = training_provenance(command or "not recorded", seed, data_dir, start)
     save_atomic({"config": config.to_dict(), "state_dict": best_state, "meta": meta}, out)
     return meta
 
@@ -171,12 +177,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--widths", type=int, nargs="+", default=list(defaults.widths))
     args = parser.parse_args(argv)
     try:
+        check_input_dir(args.data, "--data")
+        check_output_path(args.out, "--out")
         config = dataclasses.replace(
             defaults, epochs=args.epochs, batch_size=args.batch_size, learning_rate=args.learning_rate,
             input_height=args.input_height, input_width=args.input_width, val_fraction=args.val_fraction,
             widths=tuple(args.widths))
         meta = train(args.data, args.out, config, seed=args.seed, max_scenes=args.max_scenes, threads=args.threads,
-                     progress=not args.quiet)
+                     progress=not args.quiet, command=command_line("policies.cao.train", argv))
     except (ValueError, FileNotFoundError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -188,4 +196,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

@@ -1,4 +1,4 @@
-"""Every constant of the Dex-Net 3.0 style baseline, in one place (DESIGN.md, 'Baselines').
+"""Every constant of the Dex-Net 3.0 style baseline, in one place (docs/protocols.md, 'The rows of the tables').
 
 ``DexNetConfig`` fixes what a checkpoint means (crop geometry, network widths) plus how the policy
 searches (cross-entropy method); it is stored inside every checkpoint so a policy always crops the way

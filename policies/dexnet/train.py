@@ -33,7 +33,9 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from parcelpick_env.cli import check_input_dir, check_output_path, run_cli
 from policies.observation import check_camera
+from policies.provenance import NOT_RECORDED, command_line, training_provenance
 
 from .config import DexNetConfig, TrainConfig
 from .crops import DepthMosaic
@@ -156,14 +158,18 @@ def evaluate(model: SuctionQualityNet, samples: SampleSet, idx: np.ndarray, conf
     classes = [mask for mask in (pos, ~pos) if mask.any()]
     return {"loss": float(loss.mean()), "balanced_loss": float(np.mean([loss[m].mean() for m in classes])),
             "balanced_accuracy": float(np.mean([hit[m].mean() for m in classes])),
-            "positives": int(pos.sum()), "samples": int(len(idx))}
+            "positives": int(pos.sum()), "samples": len(idx)}
 
 
 def train(records: Sequence[Mapping[str, np.ndarray]], config: TrainConfig, out: str | Path | None = None,
-          metadata: Mapping[str, Any] | None = None, progress: bool = True) -> tuple[SuctionQualityNet, dict[str, Any]]:
+          metadata: Mapping[str, Any] | None = None, progress: bool = True,
+          started: float | None = None) -> tuple[SuctionQualityNet, dict[str, Any]]:
     """Train on scene records; return the model (best class-balanced validation loss, or the last epoch
     without validation)
-    and a history with the initial and final training loss on a fixed balanced subset."""
+    and a history with the initial and final training loss on a fixed balanced subset.
+
+    The checkpoint's ``provenance`` takes the command and data from ``metadata``; its wall time runs from
+    ``started`` (a ``time.perf_counter()``; None: this call's start), so the caller's data loading can count."""
     if len(records) == 0:
         raise ValueError("no scenes to train on")
     rng = np.random.default_rng(config.seed)
@@ -224,8 +230,10 @@ def train(records: Sequence[Mapping[str, np.ndarray]], config: TrainConfig, out:
         history["best_val_balanced_loss"] = best_val
     model.eval()
     if out is not None:
-        save_checkpoint(out, model, {**dict(metadata or {}), "train_config": _train_config_dict(config),
-                                     "history": history})
+        meta = {**dict(metadata or {}), "train_config": _train_config_dict(config), "history": history}
+        meta["provenance"] = training_provenance(meta.get("command", NOT_RECORDED), config.seed, meta.get("data"),
+                                                 start_time if started is None else started)
+        save_checkpoint(out, model, meta)
     return model, history
 
 
@@ -252,6 +260,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
+    started = time.perf_counter()
+    check_input_dir(args.data, "--data")
+    check_output_path(args.out, "--out")
     if args.threads is not None:
         if args.threads < 1:
             raise SystemExit(f"--threads must be >= 1, got {args.threads}")
@@ -263,12 +274,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     except ValueError as exc:
         raise SystemExit(f"error: {exc}") from exc
     records = load_records(args.data)
-    command = "python -m policies.dexnet.train " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = command_line("policies.dexnet.train", argv)
     from dataset.storage import read_manifest
 
     metadata = {"command": command, "data": str(args.data), "num_scenes": len(records),
                 "dataset_config": read_manifest(args.data).get("config", {})}
-    _, history = train(records, config, out=args.out, metadata=metadata, progress=not args.no_progress)
+    _, history = train(records, config, out=args.out, metadata=metadata, progress=not args.no_progress,
+                       started=started)
     print(f"trained on {history['train_samples']} samples ({history['train_positives']} positive) from "
           f"{len(records)} scenes in {history['train_seconds']:.1f} s; loss {history['initial_loss']:.4f} -> "
           f"{history['final_loss']:.4f}; wrote {args.out} ({Path(args.out).stat().st_size / 1e6:.2f} MB)")
@@ -276,4 +288,4 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -12,16 +12,24 @@ import json
 import math
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler, Subset, default_collate
 
+from parcelpick_env.cli import (
+    check_input_dir,
+    check_input_file,
+    check_output_path,
+    run_cli,
+)
 from policies.diffusion.checkpoint import load_checkpoint, save_checkpoint
 from policies.diffusion.config import DiffusionConfig
 from policies.diffusion.metrics import topk_precision
+from policies.provenance import command_line, training_provenance
 from policies.diffusion.model import DiffusionSuction, build_model
 from policies.diffusion.neighbourhood import NeighbourhoodTransform
 
@@ -167,6 +175,7 @@ def lr_at(step: int, total: int, base: float) -> float:
 
 
 def train(args: argparse.Namespace) -> dict[str, float]:
+    started = time.perf_counter()  # this invocation's wall time (a resumed run records its own part)
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -226,7 +235,9 @@ def train(args: argparse.Namespace) -> dict[str, float]:
                            **validate(model, val_loader, device, args.seed, args.val_scenes)}
                 is_best = metrics["val_ap_proxy"] > best
                 best = max(best, metrics["val_ap_proxy"])
-                extra = {"best_ap_proxy": best, "metrics": metrics}
+                extra = {"best_ap_proxy": best, "metrics": metrics,
+                         "provenance": training_provenance(getattr(args, "command", "not recorded"), args.seed,
+                                                           args.data, started)}
                 save_checkpoint(last, model, optimizer, step, extra)
                 if is_best:
                     save_checkpoint(args.out / "best.pt", model, None, step, extra)
@@ -239,8 +250,16 @@ def train(args: argparse.Namespace) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    train(parse_args(argv))
+    args = parse_args(argv)
+    args.command = command_line("policies.diffusion.train", argv)  # recorded in every checkpoint's provenance
+    for flag, path in (("--data", args.data), ("--val-data", args.val_data)):
+        if path is not None:
+            check_input_dir(path, flag)
+    check_output_path(args.out, "--out", directory=True)
+    if args.resume:
+        check_input_file(args.out / "last.pt", "--resume")
+    train(args)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -1,14 +1,16 @@
-"""A saved stable-baselines3 PPO model (``python -m policies.sb3.train``) behind the Policy interface.
+"""A saved PPO model (``python -m policies.sb3.train``) behind the Policy interface.
 
 The model maps coarse depth features to one pixel in [-1, 1]^2; the pixel is lifted to a suction pose
 with the shared heatmap helpers (depth back-projection, normal from the observed cloud or the depth),
-exactly as ``ParcelPick-v0``'s ``pixel`` action mode does.
+exactly as ``ParcelPick-v0``'s ``pixel`` action mode does. The model file is data only (safetensors
+weights and a JSON spec, ``policies.sb3.model_io``): loading one never runs code from it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -17,8 +19,9 @@ from policies.base import Candidates, Policy
 from policies.heatmap import pixels_to_candidates
 from policies.observation import camera, depth_image, point_cloud
 from policies.sb3.features import DEFAULT_GRID, depth_features
+from policies.sb3.model_io import load_model
 
-DEFAULT_MODEL = Path(__file__).with_name("ppo_pixel.zip")  # shipped; made by TRAIN_COMMAND
+DEFAULT_MODEL = Path(__file__).with_name("ppo_pixel.safetensors")  # shipped; made by TRAIN_COMMAND
 TRAIN_COMMAND = "python -m policies.sb3.train --timesteps 2000 --seed 0"
 
 
@@ -28,18 +31,11 @@ class SB3Policy(Policy):
     def __init__(self, checkpoint: str | Path | None = None, far: float = 3.0,
                  grid: tuple[int, int] = DEFAULT_GRID, deterministic: bool = True) -> None:
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_MODEL
-        if not path.is_file():
-            raise FileNotFoundError(f"no stable-baselines3 model at {path}; train one with `{TRAIN_COMMAND}`")
-        from stable_baselines3 import PPO
-
-        try:
-            self.model = PPO.load(path, device="cpu")
-        except Exception as exc:  # a zip that is not an SB3 model
-            raise ValueError(f"{path} is not a loadable stable-baselines3 PPO model: {exc}") from exc
+        self.model, spec = load_model(path, TRAIN_COMMAND)
         expected = (grid[0] * grid[1],)
-        if self.model.observation_space.shape != expected:
-            raise ValueError(f"{path} expects observations of shape {self.model.observation_space.shape}, "
-                             f"but this policy builds {expected} depth features")
+        if spec.observation_shape != expected or spec.action_shape != (2,):
+            raise ValueError(f"{path} maps observations {spec.observation_shape} to actions {spec.action_shape}, "
+                             f"but this policy builds {expected} depth features and needs (2,) pixel actions")
         self.far, self.grid, self.deterministic = far, grid, deterministic
 
     def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,

@@ -8,8 +8,9 @@ keep a step around a few tenths of a second on 2 CPU cores, so a few thousand st
 
     python -m policies.sb3.train --timesteps 2000 --seed 0
 
-Writes the SB3 model zip (by default the one the ``sb3`` policy ships with) and a JSON beside it with the
-episode rewards, and prints the mean reward of the first and last 10% of episodes.
+Writes the model as data-only safetensors (``policies.sb3.model_io``; by default the file the ``sb3`` policy
+ships with, never a pickled SB3 zip) and a JSON beside it with the episode rewards, and prints the mean
+reward of the first and last 10% of episodes.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
+from functools import partial
 
 import gymnasium as gym
 import numpy as np
@@ -26,7 +27,10 @@ from tqdm import tqdm
 
 import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
 from parcelpick_env.camera.config import CameraConfig
+from parcelpick_env.cli import check_output_path, run_cli
+from policies.provenance import command_line, training_provenance
 from policies.sb3.features import DEFAULT_GRID, depth_features
+from policies.sb3.model_io import save_model
 from policies.sb3.policy import DEFAULT_MODEL
 
 
@@ -58,7 +62,7 @@ class TqdmCallback(BaseCallback):
         self.bar = tqdm(total=self.total, desc="PPO", unit="step")
 
     def _on_step(self) -> bool:
-        self.bar.update(1)
+        self.bar.update(self.training_env.num_envs)  # one call per vector step
         return True
 
     def _on_training_end(self) -> None:
@@ -74,39 +78,66 @@ def make_env(seed: int, num_parcels: int = 3, layout: str = "scattered", object_
     return env
 
 
+def _monitored_env(seed: int, num_parcels: int, layout: str, object_set: str) -> gym.Env:
+    from stable_baselines3.common.monitor import Monitor
+
+    return Monitor(make_env(seed, num_parcels, layout, object_set))
+
+
+def make_vec_env(n_envs: int, seed: int, num_parcels: int = 3, layout: str = "scattered",
+                 object_set: str = "rectangular"):
+    """``n_envs`` monitored envs: in this process when 1, else one worker process each (SB3's
+    SubprocVecEnv; every process owns its own EGL renderer, parcelpick_env/sim/egl.py). PPO seeds env i
+    with ``seed + i``."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    fns = [partial(_monitored_env, seed + i, num_parcels, layout, object_set) for i in range(n_envs)]
+    return DummyVecEnv(fns) if n_envs == 1 else SubprocVecEnv(fns)
+
+
+def episode_log(venv) -> list[tuple[float, int]]:
+    """(reward, length) of every finished episode of every env, in the order they finished."""
+    per_env = zip(venv.env_method("get_episode_rewards"), venv.env_method("get_episode_lengths"),
+                  venv.env_method("get_episode_times"))
+    done = [(t, float(r), int(n)) for rewards, lengths, times in per_env for r, n, t in zip(rewards, lengths, times)]
+    return [(r, n) for _, r, n in sorted(done)]
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description="PPO on ParcelPick-v0 (pixel actions, depth-only observations)")
     ap.add_argument("--timesteps", type=int, default=2000)
-    ap.add_argument("--out", default=str(DEFAULT_MODEL), help="model zip (default: the shipped sb3 policy)")
+    ap.add_argument("--out", default=str(DEFAULT_MODEL), help="model .safetensors (default: the shipped sb3 policy)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--parcels", type=int, default=3)
     ap.add_argument("--layout", default="scattered")
     ap.add_argument("--objects", default="rectangular")
     ap.add_argument("--n-steps", type=int, default=128, help="PPO rollout length")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (the env, not the MLP, is the cost)")
+    ap.add_argument("--n-envs", type=int, default=1,
+                    help="envs stepped in parallel, one process each (SubprocVecEnv) when > 1; env i is seeded seed + i")
     args = ap.parse_args(argv)
-    if args.timesteps < 1 or args.n_steps < 2 or args.threads < 1:
-        ap.error("--timesteps must be >= 1, --n-steps >= 2 and --threads >= 1")
+    if args.timesteps < 1 or args.n_steps < 2 or args.threads < 1 or args.n_envs < 1:
+        ap.error("--timesteps must be >= 1, --n-steps >= 2, --threads >= 1 and --n-envs >= 1")
+    out = check_output_path(args.out, "--out")
 
     import torch
     from stable_baselines3 import PPO
-    from stable_baselines3.common.monitor import Monitor
 
     torch.set_num_threads(args.threads)
-    env = Monitor(make_env(args.seed, args.parcels, args.layout, args.objects))
+    env = make_vec_env(args.n_envs, args.seed, args.parcels, args.layout, args.objects)
     model = PPO("MlpPolicy", env, n_steps=args.n_steps, batch_size=min(64, args.n_steps), n_epochs=4,
                 learning_rate=3e-4, gamma=0.9, seed=args.seed, verbose=0, device="cpu")
     started = time.perf_counter()
     model.learn(total_timesteps=args.timesteps, callback=TqdmCallback(args.timesteps))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    model.save(out)
-    rewards = np.array(env.get_episode_rewards(), dtype=np.float64)
+    save_model(model.policy, out)
+    episodes = episode_log(env)
+    rewards = np.array([r for r, _ in episodes], dtype=np.float64)
     tenth = max(1, len(rewards) // 10)
     first = rewards[:tenth].mean() if len(rewards) else float("nan")
     last = rewards[-tenth:].mean() if len(rewards) else float("nan")
     log = {"command_args": vars(args), "timesteps": args.timesteps, "seconds": time.perf_counter() - started,
-           "episode_rewards": rewards.tolist(), "episode_lengths": list(map(int, env.get_episode_lengths())),
+           "provenance": training_provenance(command_line("policies.sb3.train", argv), args.seed, None, started),
+           "episode_rewards": rewards.tolist(), "episode_lengths": [n for _, n in episodes],
            "first_tenth_mean_reward": first, "last_tenth_mean_reward": last}
     out.with_suffix(".json").write_text(json.dumps(log, indent=1))
     print(f"episodes {len(rewards)}, timesteps {args.timesteps}: mean episode reward first 10% {first:.2f}, "
@@ -115,4 +146,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_cli(main))

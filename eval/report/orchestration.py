@@ -1,0 +1,180 @@
+"""What the report runs: every policy's AP and clearance, the ablations, and the provenance of what was run.
+
+Nothing here formats anything: ``run_report`` returns the plain dict that ``eval.report.markdown`` renders
+and the JSON dump stores. A policy that cannot be built, or fails while being evaluated, becomes a reason
+in that dict instead of stopping the other runs.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+import traceback
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from eval.paper_results import TABLE_IV_STEPS
+from eval.report.config import DIFFUSION, ReportConfig, label
+from eval.report.variants import TRAINED_VARIANTS, TrainedVariant
+
+
+def _reason(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}".strip().replace("\n", " ")
+
+
+def load_policy(name: str, **kwargs: Any) -> tuple[Any, str | None]:
+    """(policy, None) or (None, why it cannot be built). Any error counts: the report must go on."""
+    from policies.registry import make_policy
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return make_policy(name, **kwargs), None
+    except Exception as exc:  # noqa: BLE001  a missing model, an unimplemented policy, a corrupt checkpoint...
+        return None, _reason(exc)
+
+
+def _policy_kwargs(name: str, config: ReportConfig) -> dict[str, Any]:
+    return {"checkpoint": config.diffusion_checkpoint} if name == DIFFUSION and config.diffusion_checkpoint else {}
+
+
+def _guarded(what: str, fn: Callable[[], Any]) -> tuple[Any, str | None]:
+    """Run one evaluation; a failure becomes a reason in the report instead of losing the other runs."""
+    try:
+        return fn(), None
+    except Exception as exc:  # noqa: BLE001
+        print(f"[report] {what} failed:\n{traceback.format_exc()}", file=sys.stderr)
+        return None, _reason(exc)
+
+
+def _policy_ap(policy: Any, why: str | None, what: str, config: ReportConfig) -> tuple[Any, str | None]:
+    """(AP result, None), or (None, why) when the policy could not be built or its evaluation failed."""
+    from eval.ap import evaluate_ap
+
+    if policy is None:
+        return None, why
+    return _guarded(f"AP of {what}", lambda: evaluate_ap(policy, config.test_data, scenes=config.ap_scenes,
+                                                         progress=config.progress))
+
+
+def _entry(name: str) -> dict[str, Any]:
+    return {"name": name, "label": label(name), "status": "ok", "reason": None,
+            "ap": None, "ap_error": None, "clearance": None, "clearance_error": None}
+
+
+def evaluate_policy_ap(name: str, config: ReportConfig) -> dict[str, Any]:
+    """A report entry with the policy's AP on the test scenes filled in (or why not); never raises."""
+    entry = _entry(name)
+    policy, why = load_policy(name, **_policy_kwargs(name, config))
+    if policy is None:
+        entry.update(status="not available", reason=why)
+        return entry
+    print(f"[report] AP of {name} on {config.test_data}", file=sys.stderr)
+    entry["ap"], entry["ap_error"] = _policy_ap(policy, None, name, config)
+    return entry
+
+
+def evaluate_policy_clearance(name: str, config: ReportConfig, objects: tuple[str, ...] | None = None,
+                              layouts: tuple[str, ...] | None = None) -> tuple[Any, str | None]:
+    """(clearance summary, None) or (None, why) on the shared seeds, over the config's grid or a part of it."""
+    from eval.clearance import ClearanceConfig, evaluate_clearance
+
+    print(f"[report] clearance of {name}", file=sys.stderr)
+    clearance = ClearanceConfig(policy=name, objects=objects or config.objects, layouts=layouts or config.layouts,
+                                episodes=config.episodes, num_parcels=config.parcels, seed=config.seed,
+                                workers=config.workers, backend=config.backend, ray_address=config.ray_address,
+                                checkpoint=_policy_kwargs(name, config).get("checkpoint"))
+    return _guarded(f"clearance of {name}", lambda: evaluate_clearance(clearance, progress=config.progress))
+
+
+def finish_entry(entry: dict[str, Any], config: ReportConfig) -> dict[str, Any]:
+    """Mark an entry failed when nothing it was asked for produced a number."""
+    if entry["status"] == "ok" and entry["ap"] is None and (config.skip_clearance or entry["clearance"] is None):
+        entry.update(status="failed", reason=entry["ap_error"] or entry["clearance_error"])
+    return entry
+
+
+def evaluate_policy(name: str, config: ReportConfig) -> dict[str, Any]:
+    """AP on the test scenes and clearance on the shared seeds for one policy; never raises."""
+    entry = evaluate_policy_ap(name, config)
+    if entry["status"] == "ok" and not config.skip_clearance:
+        entry["clearance"], entry["clearance_error"] = evaluate_policy_clearance(name, config)
+    return finish_entry(entry, config)
+
+
+def train_command(variant: TrainedVariant, config: ReportConfig) -> str:
+    return " ".join([".venv/bin/python -m policies.diffusion.train", "--data", config.train_data, "--out",
+                     str(Path(config.ablation_dir) / variant.name), *config.train_args.split(),
+                     *variant.train_flags])
+
+
+def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """Inference-step counts on the main checkpoint (no retraining), then every trained variant found.
+
+    ``main_ap``: the main Diffusion-Suction AP already computed on the same scenes, reused for the row
+    whose step count is the trained one instead of running it twice.
+    """
+    rows: list[dict[str, Any]] = []
+    base, why = load_policy(DIFFUSION, **_policy_kwargs(DIFFUSION, config))
+    trained_with = int(base.config.inference_steps) if base is not None else None
+    for k in config.ablation_steps:
+        row = {"name": f"infer{k}", "kind": "inference_steps", "inference_steps": k,
+               "description": f"main checkpoint, sampled with {k} DDIM steps"
+                              + (f" (trained with {trained_with})" if trained_with else ""),
+               "paper": list(TABLE_IV_STEPS[(trained_with, k)]) if (trained_with, k) in TABLE_IV_STEPS else None,
+               "checkpoint": config.diffusion_checkpoint or "(shipped)", "command": None, "ap": None}
+        if base is None:
+            row.update(status="not available", reason=why)
+        elif k == trained_with and main_ap is not None:
+            row.update(ap=main_ap, status="ok", reason=None)
+        else:
+            policy, why_k = load_policy(DIFFUSION, inference_steps=k, **_policy_kwargs(DIFFUSION, config))
+            row["ap"], error = _policy_ap(policy, why_k, f"diffusion with {k} steps", config)
+            row.update(status="ok" if row["ap"] is not None else "failed", reason=error)
+        rows.append(row)
+    sampled = {row["inference_steps"]: row for row in rows if row["ap"] is not None}
+    # Without the loss on the sampled map, training never runs the sampler: a model 'trained with k steps' is the
+    # same network as the main one, so the step-count variants are the inference rows, not new runs.
+    step_free = base is not None and base.config.map_loss_weight == 0
+    for variant in TRAINED_VARIANTS:
+        checkpoint = Path(config.ablation_dir) / variant.name / "best.pt"
+        row = {"name": variant.name, "kind": "trained", "description": variant.description,
+               "paper": list(variant.paper) if variant.paper else None, "checkpoint": str(checkpoint),
+               "command": train_command(variant, config), "ap": None, "reason": None}
+        if variant.steps is not None and step_free and variant.steps in sampled:
+            row.update(kind="same_as_inference", checkpoint=sampled[variant.steps]["checkpoint"], command=None,
+                       ap=sampled[variant.steps]["ap"], status="ok",
+                       reason=f"the main network sampled with {variant.steps} steps: its training never runs the "
+                              f"sampler, as map_loss_weight = 0")
+        elif not checkpoint.is_file():
+            row["status"] = "not trained"
+        else:
+            policy, why_v = load_policy(DIFFUSION, checkpoint=str(checkpoint))
+            row["ap"], error = _policy_ap(policy, why_v, f"ablation {variant.name}", config)
+            row.update(status="ok" if row["ap"] is not None else "failed", reason=error)
+        rows.append(row)
+    return rows
+
+
+def run_report(config: ReportConfig) -> dict[str, Any]:
+    if not Path(config.test_data).is_dir():
+        raise FileNotFoundError(f"test data directory {config.test_data} does not exist")
+    policies = {name: evaluate_policy(name, config) for name in config.policies}
+    main_ap = policies.get(DIFFUSION, {}).get("ap")
+    return {"generated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "config": asdict(config), "policies": policies,
+            "ablations": [] if config.skip_ablations else evaluate_ablations(config, main_ap),
+            "provenance": provenance(config)}
+
+
+def provenance(config: ReportConfig) -> dict[str, dict[str, Any]]:
+    """Where each evaluated checkpoint came from (``policies.provenance``), by policy name."""
+    from policies.provenance import checkpoint_provenance, shipped_provenance
+
+    records = {name: rec for name, rec in shipped_provenance().items() if name in config.policies}
+    if config.diffusion_checkpoint and DIFFUSION in config.policies:
+        records[DIFFUSION] = checkpoint_provenance(config.diffusion_checkpoint)
+    return records

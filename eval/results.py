@@ -1,0 +1,303 @@
+"""One command that regenerates every published number: ``make results`` (or ``python -m eval.results``).
+
+It generates the held-out test scenes, optionally trains (``--train``: the ablation variants; nothing that is
+shipped is ever overwritten), then runs AP and closed-loop clearance for every policy, the Diffusion-Suction
+ablations and the benchmarks, and writes ``results/RESULTS.md`` (+ JSON and figures) and
+``benchmarks/RESULTS.md``. Locally, or with ``--backend ray`` on a Ray cluster (clearance episodes and data
+generation are spread over its CPUs).
+
+It is resumable. The work is a list of small parts (the test data, one AP run per policy, one clearance run
+per policy and cell, the ablations, one benchmark script each); a finished part writes its JSON under
+``--work`` atomically, and a re-run skips every part whose JSON exists, so an interrupted run redoes only
+what was unfinished. ``--force PREFIX`` redoes the parts whose names start with it.
+
+    python -m eval.results                       # everything, 2 local workers
+    python -m eval.results --backend ray --workers 32 --ray-address auto
+    python -m eval.results --list                # the parts and which are done
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # allow `python eval/results.py` as well as `python -m eval.results`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from eval.clearance import LAYOUTS, OBJECT_SETS, EpisodeResult, summarise  # noqa: E402
+from eval.report import orchestration  # noqa: E402
+from eval.report.config import DEFAULT_POLICIES, DIFFUSION, ReportConfig  # noqa: E402
+from eval.report.markdown import write_report  # noqa: E402
+from eval.report.variants import TRAINED_VARIANTS  # noqa: E402
+from parcelpick_env.parallel import BACKENDS  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+# The held-out test split every published number uses: the README's test command at 64 scenes (>= 50, so a
+# 3-point paired AP gap resolves; per-scene AP differences spread by about 10 points).
+TEST_DATA_ARGS: tuple[str, ...] = ("--split", "test", "--seed", "1", "--parcels", "1", "20", "--layout", "random",
+                                   "--objects", "random", "--points", "4096", "--width", "320", "--height", "240",
+                                   "--scenes-per-shard", "16")
+TRAIN_DATA_ARGS: tuple[str, ...] = ("--split", "train", "--seed", "0", "--parcels", "1", "20", "--layout", "random",
+                                    "--objects", "random", "--points", "4096", "--width", "320", "--height", "240",
+                                    "--scenes-per-shard", "20")
+
+
+@dataclass(frozen=True)
+class ResultsConfig:
+    """What ``make results`` runs; the evaluation settings are the report's (``report``)."""
+
+    report: ReportConfig
+    work: str = "runs/results"  # finished parts (JSON); ignored by git
+    test_scenes: int = 64
+    train_scenes: int = 960  # only with train=True
+    train: bool = False
+    benchmarks: bool = True
+    bench_dir: str = "benchmarks"
+    force: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.test_scenes < 1 or self.train_scenes < 1:
+            raise ValueError(f"test_scenes and train_scenes must be >= 1, got {self.test_scenes}, {self.train_scenes}")
+
+
+@dataclass(frozen=True)
+class Part:
+    """One resumable unit of work: done when ``output`` (its JSON) exists."""
+
+    name: str
+    output: Path
+    run: Callable[[], Any]
+    after: tuple[str, ...] = field(default=())  # informational: the parts whose outputs it reads
+
+
+def write_json_atomic(path: Path, value: Any) -> Path:
+    """Write-then-rename: a part killed mid-write never looks finished."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(value, indent=1, default=str))
+    os.replace(tmp, path)
+    return path
+
+
+def read_json(path: Path) -> Any:
+    return json.loads(path.read_text())
+
+
+def run_parts(parts: Sequence[Part], force: Sequence[str] = (), log: Callable[[str], None] = print
+              ) -> dict[str, str]:
+    """Run every unfinished part in order; ``{name: 'ran' | 'skipped'}``. An exception stops the run (the
+    finished parts stay finished)."""
+    status: dict[str, str] = {}
+    for part in parts:
+        if part.output.is_file() and not any(part.name.startswith(f) for f in force):
+            status[part.name] = "skipped"
+            continue
+        log(f"[results] {part.name}")
+        started = time.perf_counter()
+        value = part.run()
+        write_json_atomic(part.output, {"part": part.name, "seconds": time.perf_counter() - started,
+                                        "value": value})
+        status[part.name] = "ran"
+    return status
+
+
+def _subprocess(argv: Sequence[str]) -> dict[str, Any]:
+    done = subprocess.run([sys.executable, *argv], cwd=REPO, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"`{' '.join(argv)}` failed ({done.returncode}): {done.stderr[-2000:]}")
+    return {"argv": list(argv), "stdout": done.stdout}
+
+
+def _generate(out: str, scenes: int, args: Sequence[str], cfg: ResultsConfig) -> Callable[[], Any]:
+    def run() -> dict[str, Any]:
+        from policies.provenance import manifest_sha256
+
+        argv = ["-m", "dataset.generate", "--out", out, "--scenes", str(scenes), *args,
+                "--workers", str(cfg.report.workers), "--backend", cfg.report.backend, "--no-progress"]
+        if cfg.report.ray_address:
+            argv += ["--ray-address", cfg.report.ray_address]
+        result = _subprocess(argv)
+        return {"argv": result["argv"], "manifest_sha256": manifest_sha256(out)}
+    return run
+
+
+def _train_variant(variant, cfg: ResultsConfig) -> Callable[[], Any]:
+    def run() -> dict[str, Any]:
+        command = orchestration.train_command(variant, cfg.report).split()
+        return _subprocess(command[command.index("-m"):])  # this interpreter, not the command's .venv path
+    return run
+
+
+def _ap_part(name: str, report: ReportConfig) -> Callable[[], Any]:
+    return lambda: orchestration.evaluate_policy_ap(name, report)
+
+
+def _clearance_part(name: str, report: ReportConfig, objects: str, layout: str, ap_part: Path
+                    ) -> Callable[[], Any]:
+    def run() -> dict[str, Any]:
+        entry = _value(ap_part) or {}
+        if entry.get("status") == "not available":  # the AP part could not build it: no episode would run
+            return {"episodes": None, "error": entry.get("reason")}
+        summary, error = orchestration.evaluate_policy_clearance(name, report, (objects,), (layout,))
+        return {"episodes": None if summary is None else summary["episodes"], "error": error}
+    return run
+
+
+def _bench_part(script: Path) -> Callable[[], Any]:
+    return lambda: _subprocess([str(script.relative_to(REPO))])
+
+
+def plan(cfg: ResultsConfig) -> list[Part]:
+    """Every part, in the order they run."""
+    work, r = Path(cfg.work), cfg.report
+    parts = [Part("data/test", work / "data" / "test.json", _generate(r.test_data, cfg.test_scenes, TEST_DATA_ARGS,
+                                                                       cfg))]
+    if cfg.train:
+        parts.append(Part("data/train", work / "data" / "train.json",
+                          _generate(r.train_data, cfg.train_scenes, TRAIN_DATA_ARGS, cfg)))
+        parts += [Part(f"train/{v.name}", work / "train" / f"{v.name}.json", _train_variant(v, cfg), ("data/train",))
+                  for v in TRAINED_VARIANTS]
+    parts += [Part(f"ap/{name}", work / "ap" / f"{name}.json", _ap_part(name, r), ("data/test",))
+              for name in r.policies]
+    if not r.skip_clearance:
+        parts += [Part(f"clearance/{name}/{o}-{la}", work / "clearance" / name / f"{o}-{la}.json",
+                       _clearance_part(name, r, o, la, work / "ap" / f"{name}.json"), (f"ap/{name}",))
+                  for name in r.policies for o in r.objects for la in r.layouts]
+    if not r.skip_ablations:
+        parts.append(Part("ablations", work / "ablations.json", lambda: _ablations(cfg), (f"ap/{DIFFUSION}",)))
+    if cfg.benchmarks:
+        parts += [Part(f"bench/{s.stem}", work / "bench" / f"{s.stem}.json", _bench_part(s))
+                  for s in sorted((REPO / cfg.bench_dir).glob("bench_*.py"))]
+    return parts
+
+
+def _value(path: Path) -> Any:
+    return read_json(path)["value"] if path.is_file() else None
+
+
+def _ablations(cfg: ResultsConfig) -> list[dict[str, Any]]:
+    main = _value(Path(cfg.work) / "ap" / f"{DIFFUSION}.json")
+    return orchestration.evaluate_ablations(cfg.report, (main or {}).get("ap"))
+
+
+def assemble(cfg: ResultsConfig) -> dict[str, Any]:
+    """The report dict ``run_report`` would return, from the finished parts (unfinished ones are missing)."""
+    work, r = Path(cfg.work), cfg.report
+    policies = {}
+    for name in r.policies:
+        entry = _value(work / "ap" / f"{name}.json") or {**orchestration._entry(name), "status": "failed",
+                                                         "reason": "its AP part did not finish"}
+        if entry["status"] == "ok" and not r.skip_clearance:
+            cells = [_value(work / "clearance" / name / f"{o}-{la}.json") for o in r.objects for la in r.layouts]
+            errors = [c["error"] for c in cells if c is not None and c["error"]]
+            episodes = [e for c in cells if c is not None and c["episodes"] for e in c["episodes"]]
+            if episodes:
+                summary = summarise([EpisodeResult(**e) for e in episodes])
+                summary["episodes"] = episodes
+                entry["clearance"] = summary
+            missing = sum(c is None for c in cells)
+            if errors or missing:
+                entry["clearance_error"] = "; ".join(errors + ([f"{missing} cell(s) unfinished"] if missing else []))
+        policies[name] = orchestration.finish_entry(entry, r)
+    return {"generated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "config": asdict(r),
+            "policies": policies, "ablations": [] if r.skip_ablations else (_value(work / "ablations.json") or []),
+            "provenance": orchestration.provenance(r)}
+
+
+def write_benchmarks(cfg: ResultsConfig) -> Path | None:
+    """``benchmarks/RESULTS.md`` from the finished benchmark parts: each script's own printed tables."""
+    runs = sorted((Path(cfg.work) / "bench").glob("*.json"))
+    if not runs:
+        return None
+    import platform
+
+    lines = ["# Benchmark results", "",
+             f"Regenerated by `make results` on {time.strftime('%Y-%m-%d', time.gmtime())}: {os.cpu_count()} CPUs, "
+             f"Python {platform.python_version()}, {platform.machine()}. Each section is one script's output.", ""]
+    for path in runs:
+        part = read_json(path)
+        lines += [f"## {part['part'].split('/', 1)[1]} ({part['seconds']:.0f} s)", "", "```",
+                  part["value"]["stdout"].rstrip(), "```", ""]
+    out = REPO / cfg.bench_dir / "RESULTS.md"
+    out.write_text("\n".join(lines))
+    return out
+
+
+def regenerate(cfg: ResultsConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run the unfinished parts, then write the report and the benchmark page from everything finished."""
+    status = run_parts(plan(cfg), cfg.force, log)
+    report = assemble(cfg)
+    paths = write_report(report, cfg.report.out, cfg.report.figures_dir)
+    bench = write_benchmarks(cfg)
+    return {"status": status, "paths": {k: str(v) for k, v in paths.items()}, "benchmarks": str(bench) if bench
+            else None}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d = ResultsConfig(report=ReportConfig(test_data="data/test"))
+    p = argparse.ArgumentParser(prog="python -m eval.results", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--test-data", default="data/test", help="test scenes (generated here when missing)")
+    p.add_argument("--test-scenes", type=int, default=d.test_scenes)
+    p.add_argument("--train", action="store_true", help="also generate data/train and train the ablation variants")
+    p.add_argument("--train-data", default=d.report.train_data)
+    p.add_argument("--policies", nargs="+", default=list(DEFAULT_POLICIES))
+    p.add_argument("--episodes", type=int, default=d.report.episodes, help="clearance episodes per cell")
+    p.add_argument("--parcels", type=int, default=6, help="parcels per clearance pile")
+    p.add_argument("--objects", nargs="+", default=list(OBJECT_SETS), choices=OBJECT_SETS)
+    p.add_argument("--layouts", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2, help="local processes, or Ray CPUs")
+    p.add_argument("--backend", default="local", choices=BACKENDS)
+    p.add_argument("--ray-address", default=None)
+    p.add_argument("--out", default="results/RESULTS.md")
+    p.add_argument("--work", default=d.work, help="finished parts are kept here")
+    p.add_argument("--ablation-dir", default=d.report.ablation_dir)
+    p.add_argument("--skip-clearance", action="store_true")
+    p.add_argument("--skip-ablations", action="store_true")
+    p.add_argument("--skip-benchmarks", action="store_true")
+    p.add_argument("--force", nargs="*", default=[], metavar="PREFIX", help="redo the parts whose names start so")
+    p.add_argument("--list", action="store_true", help="list the parts and whether each is done, then stop")
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> ResultsConfig:
+    report = ReportConfig(test_data=args.test_data, policies=tuple(args.policies), episodes=args.episodes,
+                          parcels=args.parcels, objects=tuple(args.objects), layouts=tuple(args.layouts),
+                          seed=args.seed, workers=args.workers, backend=args.backend,
+                          ray_address=args.ray_address, out=args.out,
+                          skip_clearance=args.skip_clearance, skip_ablations=args.skip_ablations,
+                          ablation_dir=args.ablation_dir, train_data=args.train_data, progress=False)
+    return ResultsConfig(report=report, work=args.work, test_scenes=args.test_scenes, train=args.train,
+                         benchmarks=not args.skip_benchmarks, force=tuple(args.force))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        cfg = config_from_args(args)
+    except ValueError as exc:
+        parser.error(str(exc))
+    if args.list:
+        for part in plan(cfg):
+            print(f"{'done' if part.output.is_file() else 'todo'}  {part.name}")
+        return 0
+    result = regenerate(cfg)
+    ran = [k for k, v in result["status"].items() if v == "ran"]
+    print(f"[results] ran {len(ran)} part(s), skipped {len(result['status']) - len(ran)}; wrote "
+          + ", ".join(list(result["paths"].values()) + ([result["benchmarks"]] if result["benchmarks"] else [])))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

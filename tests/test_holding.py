@@ -1,0 +1,309 @@
+"""The physical cup's holding model (suction/cup.py) and the pick's moves, on known-answer scenes.
+
+Expected ratios are worked out by hand here from the Dex-Net 3.0 ring conditions with the static load
+of the held parcel (the lift starts from rest, so the first steps carry gravity only).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pybullet as pb
+import pytest
+import trimesh
+
+from parcelpick_env.assets.generator import CARTON_SIDE_RANGE, CUP_MASS_LIMIT, MAX_MASS
+from parcelpick_env.camera.config import CameraConfig
+from parcelpick_env.envs.config import ENV_CUP_RADIUS, GraspConfig
+from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
+from parcelpick_env.envs.grasp import CONDITIONS, MOVES
+from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+from parcelpick_env.suction.cup import CupSpec, ToolState, contact_forces, cup_wrench, mesh_inertia
+
+SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256)
+G = 9.8
+K = 15.6  # SuctionConfig.material_k
+HEAVY_MASS = MAX_MASS  # kg: the heaviest parcel the cell allows (the cup's rated pull at the carry's load share)
+TALLEST = CARTON_SIDE_RANGE[1]  # m: the largest carton side the generator draws
+# the heaviest and tallest carton the cell allows, a cube of the largest side
+HEAVY = BoxScene([PlacedBox((TALLEST,) * 3, HEAVY_MASS)])
+# known answer for a long lever: as heavy and as tall, with a top face wide enough that 15 cm off-centre
+# still leaves the 20 mm lip on it
+HEAVY_WIDE = BoxScene([PlacedBox((0.40, 0.30, TALLEST), HEAVY_MASS)])
+TILT = math.radians(20.0)
+SLAB = PlacedBox((0.40, 0.40, 0.04), 1.0, tilt=TILT, center=(0.0, 0.0, 0.10))
+SLIPPERY = GraspConfig(cup=CupSpec(friction=0.1))  # a lip on glossy film: mu 0.1
+
+
+def make(scene, **kwargs) -> ParcelPickEnv:
+    return ParcelPickEnv(**{**SMALL, "scene_factory": scene, **kwargs})
+
+
+def top_pick(env, offset=(0.0, 0.0)):
+    """The attempt at the centre (plus ``offset``) of the first parcel's top face, along its normal."""
+    ps = env.scene.parcels[0]
+    R = np.asarray(pb.getMatrixFromQuaternion(ps.orientation.tolist())).reshape(3, 3)
+    half = ps.asset.extents[2] / 2
+    point = ps.position + R @ np.array([offset[0], offset[1], half])
+    return env.executor.attempt(env.scene, point, R[:, 2])
+
+
+def rated_vacuum(cup: CupSpec, seal: float) -> float:
+    """V = dP0 / (1 + beta (1 - s)) * pi r^2 / S, by hand."""
+    return cup.vacuum_kpa * 1e3 / (1 + cup.leak_ratio * (1 - seal)) * math.pi * ENV_CUP_RADIUS**2 / cup.safety_factor
+
+
+def static_ratios(mass, lever, axis, mu, vacuum):
+    """Friction (x, y combined), torsion, material (x, y combined) and suction of a parcel hanging at
+    rest: the cup supplies m g upward at the lip; ``lever`` = COM - lip, ``axis`` the cup axis."""
+    force = np.array([0.0, 0.0, mass * G])
+    torque = np.cross(lever, force)
+    f_axial = force @ axis  # along the cup axis (into the parcel): negative when it hangs
+    f_n = f_axial + vacuum
+    lateral = np.linalg.norm(force - f_axial * axis)
+    twist = abs(torque @ axis)
+    bending = np.linalg.norm(torque - (torque @ axis) * axis)
+    r = ENV_CUP_RADIUS
+    return {"friction": math.sqrt(3) * lateral / (mu * f_n), "torsion": math.sqrt(3) * twist / (r * mu * f_n),
+            "material": math.sqrt(2) * bending / (math.pi * r * K), "suction": max(-f_axial, 0.0) / vacuum}
+
+
+def combined(peaks, name):
+    return math.hypot(peaks[f"{name}_x"], peaks[f"{name}_y"])
+
+
+# ---------------------------------------------------------------------------------- the cup alone
+def test_vacuum_law_and_rated_force():
+    cup, r = CupSpec(), ENV_CUP_RADIUS
+    area = math.pi * r**2
+    assert r == pytest.approx(0.020)  # the 40 mm bellows cup
+    assert cup.rated_force(r, 1.0) == pytest.approx(60e3 * area / 1.5)  # 50.3 N
+    assert cup.rated_force(r, 0.5) == pytest.approx(60e3 / (1 + 3.0 * 0.5) * area / 1.5)
+    assert cup.rated_force(r, 0.0) < cup.rated_force(r, 0.5) < cup.rated_force(r, 1.0)
+    seals = np.array([0.0, 0.5, 1.0])  # one law for arrays of seals (the oracle ranks many at once)
+    np.testing.assert_allclose(cup.rated_force(r, seals), [cup.rated_force(r, float(v)) for v in seals])
+
+
+def test_mass_bound_is_the_arm_payload_or_the_cups_rated_pull():
+    """MAX_MASS: the Gen3's 4 kg less the 0.5 kg tool, or what hangs from the cup at the carry's load
+    share (0.45 of 50.3 N = 2.31 kg), whichever is less."""
+    cup = CupSpec()
+    assert CUP_MASS_LIMIT == pytest.approx(GraspConfig().carry_load_target * cup.rated_force(ENV_CUP_RADIUS) / G)
+    assert MAX_MASS == pytest.approx(min(3.5, CUP_MASS_LIMIT)) and MAX_MASS == pytest.approx(2.31, abs=0.01)
+
+
+def test_cup_wrench_newton_euler_known_answers():
+    R = np.diag([1.0, -1.0, -1.0])  # cup z pointing down (a top pick)
+    tip = np.zeros(3)
+    com = np.array([0.05, 0.0, -0.1])  # 5 cm off the axis, 10 cm below the lip
+    inertia = mesh_inertia(trimesh.creation.box(extents=(0.2, 0.2, 0.2)), 2.0)
+    assert np.allclose(np.diag(inertia), 2.0 * (0.04 + 0.04) / 12)
+    force, torque = cup_wrench(2.0, com, inertia, ToolState(tip, R), G)
+    assert np.allclose(force, [0.0, 0.0, -2 * G])  # the cup pulls up: -z in the cup frame
+    assert np.linalg.norm(torque) == pytest.approx(2 * G * 0.05)
+    # accelerating up at 1 m/s^2 adds m a; spinning about the cup axis at w adds m w^2 r of pull inward
+    up = ToolState(tip, R, a=np.array([0.0, 0.0, 1.0]))
+    assert cup_wrench(2.0, com, inertia, up, G)[0][2] == pytest.approx(-2 * (G + 1.0))
+    spin = ToolState(tip, R, omega=np.array([0.0, 0.0, 2.0]))
+    assert cup_wrench(2.0, com, inertia, spin, G)[0][0] == pytest.approx(-2 * 4.0 * 0.05)
+    # a contact pushing up with the whole weight at the COM's foot leaves the cup nothing to carry
+    f, t = cup_wrench(2.0, com, inertia, ToolState(tip, R), G, com[None] + [0, 0, -0.1], np.array([[0, 0, 2 * G]]))
+    assert np.allclose(f, 0.0, atol=1e-9) and np.allclose(t, 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("box_first", [False, True])
+def test_contact_forces_balance_weight_on_an_incline(box_first):
+    """Friction's sign follows pybullet's body order; the sum must hold the box up either way."""
+    c = pb.connect(pb.DIRECT)
+    try:
+        pb.setGravity(0, 0, -G, physicsClientId=c)
+        orn = pb.getQuaternionFromEuler([TILT, 0, 0])
+
+        def slab():
+            return pb.createMultiBody(0, pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[1, 1, 0.05],
+                                                                 physicsClientId=c), baseOrientation=orn,
+                                      physicsClientId=c)
+
+        def box():
+            return pb.createMultiBody(2.0, pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[0.1] * 3,
+                                                                   physicsClientId=c),
+                                      basePosition=[0, 0, 0.2], baseOrientation=orn, physicsClientId=c)
+
+        if box_first:
+            b = box()
+            slab()
+        else:
+            slab()
+            b = box()
+        for body in range(pb.getNumBodies(physicsClientId=c)):
+            pb.changeDynamics(body, -1, lateralFriction=0.9, physicsClientId=c)
+        for _ in range(400):
+            pb.stepSimulation(physicsClientId=c)
+        contacts = contact_forces(c, b)
+        assert np.allclose(contacts.forces.sum(axis=0), [0.0, 0.0, 2.0 * G], atol=0.05)
+        assert np.all(contacts.bearing({0, 1}))
+    finally:
+        pb.disconnect(c)
+
+
+# ---------------------------------------------------------------------------------- whole picks
+def test_heaviest_carton_at_top_centre_is_carried_with_margin_and_level():
+    env = make(HEAVY)
+    try:
+        env.reset(seed=0)
+        res = top_pick(env)
+        assert res.outcome == "success", res.failure
+        assert [m.move for m in res.moves] == list(MOVES) and all(m.ok for m in res.moves)
+        assert set(res.peak_ratios) == set(CONDITIONS)
+        assert max(res.peak_ratios.values()) < 0.5, res.peak_ratios
+        # the static suction load alone, by hand: m g / V
+        vac = rated_vacuum(CupSpec(), res.seal)
+        assert res.peak_ratios["suction"] >= HEAVY_MASS * G / vac * 0.98
+        carried = [e["axis"] for e in res.trace if e["move"] in ("lift", "transport")]
+        assert len(carried) > 10
+        tilt = np.degrees(np.arccos(np.clip(-np.array(carried)[:, 2], -1, 1)))
+        assert tilt.max() < 3.0, tilt.max()
+    finally:
+        env.close()
+
+
+def test_heaviest_carton_15cm_off_centre_drops_on_the_material_condition():
+    env = make(HEAVY_WIDE)
+    try:
+        env.reset(seed=0)
+        res = top_pick(env, (0.15, 0.0))
+        assert res.outcome == "dropped"
+        assert res.failure.move == "lift" and res.failure.condition in ("material_x", "material_y")
+        assert res.failure_cause == res.failure.condition and res.failure_phase == "lift"
+        axis = -np.array([0.0, 0.0, 1.0])
+        lever = np.array([-0.15, 0.0, -TALLEST / 2])
+        expected = static_ratios(HEAVY_MASS, lever, axis, 0.5, rated_vacuum(CupSpec(), res.seal))
+        assert expected["material"] == pytest.approx(4.9, abs=0.1)  # sqrt2 * 2.31 g 0.15 / (pi r k)
+        assert combined(res.peak_ratios, "material") == pytest.approx(expected["material"], rel=0.1)
+        assert env.sim.has_body(res.body_id)  # it fell back into the bin
+    finally:
+        env.close()
+
+
+def test_vacuum_condition_fails_for_a_parcel_heavier_than_the_pull():
+    weak = GraspConfig(cup=CupSpec(vacuum_kpa=15.0))
+    env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 3.0)]), grasp=weak)
+    try:
+        env.reset(seed=0)
+        res = top_pick(env)
+        assert res.outcome == "dropped" and res.failure.condition == "suction" and res.failure.move == "lift"
+        expected = 3.0 * G / rated_vacuum(weak.cup, res.seal)  # 29.4 N against 19.6 N: 1.5
+        assert expected > 1.2
+        assert res.peak_ratios["suction"] == pytest.approx(expected, rel=0.05)
+    finally:
+        env.close()
+
+
+def test_friction_condition_fails_on_a_tilted_face_with_a_slippery_lip():
+    mass = 2.0
+    env = make(BoxScene([SLAB.resting_on_top((0.30, 0.30, 0.04), mass)], fixtures=[SLAB]), grasp=SLIPPERY)
+    try:
+        env.reset(seed=0)
+        res = top_pick(env)
+        assert res.outcome == "dropped" and res.failure.move == "lift"
+        assert res.failure.condition in ("friction_x", "friction_y")
+        normal = np.array([0.0, -math.sin(TILT), math.cos(TILT)])
+        expected = static_ratios(mass, -0.02 * normal, -normal, 0.1, rated_vacuum(SLIPPERY.cup, res.seal))
+        assert expected["friction"] > 1.5 and expected["material"] < 0.5 and expected["torsion"] < 0.1
+        assert combined(res.peak_ratios, "friction") == pytest.approx(expected["friction"], rel=0.15)
+    finally:
+        env.close()
+
+
+def test_torsion_condition_fails_off_the_tilt_axis_with_a_slippery_lip():
+    mass, offset = 0.4, 0.08  # along the slab's level (x) direction: gravity's slope pull twists the cup
+    env = make(BoxScene([SLAB.resting_on_top((0.30, 0.30, 0.04), mass)], fixtures=[SLAB]), grasp=SLIPPERY)
+    try:
+        env.reset(seed=0)
+        res = top_pick(env, (offset, 0.0))
+        assert res.outcome == "dropped" and res.failure.condition == "friction_torsion"
+        normal = np.array([0.0, -math.sin(TILT), math.cos(TILT)])
+        lever = np.array([-offset, 0.0, 0.0]) - 0.02 * normal
+        expected = static_ratios(mass, lever, -normal, 0.1, rated_vacuum(SLIPPERY.cup, res.seal))
+        assert expected["torsion"] > 1.3 and expected["friction"] < 0.6 and expected["material"] < 0.6
+        assert res.peak_ratios["friction_torsion"] == pytest.approx(expected["torsion"], rel=0.15)
+    finally:
+        env.close()
+
+
+def test_held_parcel_lifted_into_a_bar_is_a_collision_naming_the_move_and_body():
+    bar = PlacedBox((0.10, 0.40, 0.04), 1.0, center=(0.12, 0.0, 0.14))  # 2 cm above the box's far end
+    env = make(BoxScene([PlacedBox((0.40, 0.20, 0.10), 0.5)], fixtures=[bar]))
+    try:
+        env.reset(seed=0)
+        res = top_pick(env, (-0.12, 0.0))
+        assert res.outcome == "collision", (res.outcome, res.failure)
+        assert res.failure.move == "lift" and res.failure.link == "held parcel"
+        assert res.failure.body == env.scene.meta["fixtures"][0]
+    finally:
+        env.close()
+
+
+def test_failure_is_reported_in_step_info():
+    env = make(HEAVY_WIDE)
+    try:
+        env.reset(seed=0)
+        ps = env.scene.parcels[0]
+        _, _, _, _, info = env.step(np.array([*(ps.position + [0.15, 0.0, TALLEST / 2]), 0, 0, 1], dtype=np.float32))
+        assert info["outcome"] == "dropped"
+        assert info["failure"] == {"move": "lift", "link": "suction_cup", "condition": info["failure_cause"],
+                                   "body": ps.body_id}
+    finally:
+        env.close()
+
+
+def test_carry_acceleration_budget_matches_the_hand_linearisation():
+    """2 kg hanging 20 cm below the lip: suction 0.39 at rest rises m/V per m/s^2 upward; the
+    material ratio rises sqrt2 m d / (pi r k) per m/s^2 sideways. The budget is the first to reach 0.45."""
+    from parcelpick_env.suction.cup import HoldMonitor
+
+    cup, r, mass = CupSpec(), ENV_CUP_RADIUS, 2.0
+    monitor = HoldMonitor(cup, r, K, G, mass, np.eye(3) * 0.05, seal=1.0)
+    tool = ToolState(np.zeros(3), np.diag([1.0, -1.0, -1.0]))
+    com = np.array([0.0, 0.0, -0.20])
+    vac = cup.rated_force(r, 1.0)
+    by_suction = (0.45 - mass * G / vac) / (mass / vac)
+    by_material = 0.45 / (math.sqrt(2) * mass * 0.20 / (math.pi * r * K))
+    assert min(by_suction, by_material) > 0.1
+    assert monitor.allowed_acceleration(tool, com, np.eye(3), 0.45, 0.1) == pytest.approx(min(by_suction, by_material),
+                                                                                          rel=1e-6)
+    assert monitor.allowed_acceleration(tool, com, np.eye(3), 0.30, 0.1) == 0.1  # already past 0.30 at rest
+
+
+def test_hover_height_comes_from_the_tallest_neighbour():
+    tall = PlacedBox((0.12, 0.12, 0.35), 1.0, (0.0, 0.08))  # 1 cm beside the low box
+    env = make(BoxScene([PlacedBox((0.30, 0.12, 0.08), 0.5, (0.0, -0.05)), tall]))
+    try:
+        env.reset(seed=0)
+        low = env.scene.parcels[0]
+        pick = env.executor._plan(env.scene, low.position + [0.0, 0.02, 0.04], np.array([0.0, 0.0, 1.0]))
+        tall_top = env.sim.aabb(env.scene.parcels[1].body_id)[1][2]
+        assert pick.hover[2] == pytest.approx(tall_top + env.config.grasp.hover_clearance, abs=1e-6)
+        far = env.executor._plan(env.scene, low.position + [0.14, 0.02, 0.04], np.array([0.0, 0.0, 1.0]))
+        low_top = env.sim.aabb(low.body_id)[1][2]  # beyond the 8 cm corridor only the low box itself counts
+        assert far.hover[2] == pytest.approx(low_top + env.config.grasp.hover_clearance, abs=1e-6)
+    finally:
+        env.close()
+
+
+def test_parcel_that_cannot_be_carried_on_is_set_back_down():
+    far = GraspConfig(drop_zone=(1.5, 0.0, 0.45))  # beyond the arm's reach
+    env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0)]), grasp=far)
+    try:
+        env.reset(seed=0)
+        before = env.scene.parcels[0].position.copy()
+        res = top_pick(env)
+        assert res.outcome == "unreachable" and res.failure.move == "transport"
+        assert [m.move for m in res.moves][-3:] == ["lift", "transport", "retreat"]
+        lowered = [e["tip"][2] for e in res.trace if e["move"] == "retreat" and "held" in e]
+        assert lowered and min(lowered) < res.contact_point[2] + 0.01  # carried back down while held
+        after, _ = env.sim.body_pose(res.body_id)
+        assert np.linalg.norm(after - before) < 0.01  # and left where it was
+    finally:
+        env.close()

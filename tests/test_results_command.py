@@ -1,0 +1,115 @@
+"""`make results` (eval.results): interrupted and re-run, it redoes only the parts that had not finished."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eval import results
+from eval.clearance import EpisodeResult, attempt_record, summarise
+from eval.metrics import aggregate_ap, scene_ap
+from eval.report import orchestration
+from eval.report.config import ReportConfig
+
+
+def _part(name: str, tmp_path: Path, calls: Counter, fail: set[str]) -> results.Part:
+    def run():
+        calls[name] += 1
+        if name in fail:
+            raise KeyboardInterrupt  # the user's Ctrl-C, mid-run
+        return {"name": name}
+    return results.Part(name, tmp_path / f"{name}.json", run)
+
+
+def test_an_interrupted_run_redoes_only_the_unfinished_parts(tmp_path: Path):
+    calls: Counter = Counter()
+    parts = [_part(n, tmp_path, calls, fail={"b"}) for n in "abc"]
+    with pytest.raises(KeyboardInterrupt):
+        results.run_parts(parts, log=lambda _: None)
+    assert calls == {"a": 1, "b": 1} and (tmp_path / "a.json").is_file() and not (tmp_path / "b.json").exists()
+    (tmp_path / "c.json.tmp").write_text("{")  # a write killed half way never marks a part done
+    parts = [_part(n, tmp_path, calls, fail=set()) for n in "abc"]
+    assert results.run_parts(parts, log=lambda _: None) == {"a": "skipped", "b": "ran", "c": "ran"}
+    assert calls == {"a": 1, "b": 2, "c": 1}
+    assert results.run_parts(parts, log=lambda _: None) == dict.fromkeys("abc", "skipped")
+    assert results.run_parts(parts, force=["b"], log=lambda _: None)["b"] == "ran" and calls["b"] == 3
+    assert json.loads((tmp_path / "c.json").read_text())["value"] == {"name": "c"}
+
+
+def _fake_ap(name: str, config: ReportConfig) -> dict:
+    rng = np.random.default_rng(len(name))
+    ap = aggregate_ap([scene_ap(np.linspace(1, 0, 5), rng.random(5)) for _ in range(6)])
+    ap["scenes"] = [{"index": i, "seconds": 0.1} for i in range(6)]
+    return {**orchestration._entry(name), "ap": ap}
+
+
+def _fake_clearance(calls: Counter, interrupt_at: str | None):
+    def run(name, config, objects, layouts):
+        cell = f"{name}/{objects[0]}-{layouts[0]}"
+        calls[cell] += 1
+        if cell == interrupt_at:
+            raise KeyboardInterrupt
+        episodes = [EpisodeResult(objects=objects[0], layout=layouts[0], episode=e, seed=e, attempts=3, successes=1,
+                                  parcels_placed=2, parcels_cleared=1, reason="consecutive_failures",
+                                  outcomes={"success": 1, "dropped": 2}, replay=None, wall_time_s=1.0,
+                                  attempt_log=[attempt_record({"outcome": "success"})] + 2 * [attempt_record(
+                                      {"outcome": "dropped", "failure_cause": "suction", "failure_phase": "lift"})])
+                    for e in range(config.episodes)]
+        summary = summarise(episodes)
+        summary["episodes"] = [asdict(e) for e in episodes]
+        return summary, None
+    return run
+
+
+def _config(tmp_path: Path, bench_dir: Path) -> results.ResultsConfig:
+    report = ReportConfig(test_data=str(tmp_path / "data"), policies=("diffusion", "cao"),
+                          objects=("rectangular",), layouts=("scattered", "stacked"), episodes=2,
+                          out=str(tmp_path / "results" / "RESULTS.md"), progress=False)
+    return results.ResultsConfig(report=report, work=str(tmp_path / "work"), bench_dir=str(bench_dir))
+
+
+def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_path: Path, monkeypatch):
+    bench_dir = tmp_path / "benchmarks"
+    bench_dir.mkdir()
+    (bench_dir / "bench_tiny.py").write_text("print('| metric | value |')\nprint('| x | 1 |')\n")
+    monkeypatch.setattr(results, "REPO", tmp_path)
+    calls: Counter = Counter()
+    monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg: lambda: calls.update(["data"]) or {})
+    monkeypatch.setattr(orchestration, "evaluate_policy_ap", lambda name, cfg: calls.update([f"ap/{name}"])
+                        or _fake_ap(name, cfg))
+    monkeypatch.setattr(orchestration, "evaluate_ablations", lambda cfg, main_ap: calls.update(["ablations"]) or [])
+    monkeypatch.setattr(orchestration, "evaluate_policy_clearance", _fake_clearance(calls, "cao/rectangular-stacked"))
+    cfg = _config(tmp_path, bench_dir)
+    names = [p.name for p in results.plan(cfg)]
+    assert names == ["data/test", "ap/diffusion", "ap/cao", "clearance/diffusion/rectangular-scattered",
+                     "clearance/diffusion/rectangular-stacked", "clearance/cao/rectangular-scattered",
+                     "clearance/cao/rectangular-stacked", "ablations", "bench/bench_tiny"]
+    with pytest.raises(KeyboardInterrupt):
+        results.regenerate(cfg, log=lambda _: None)
+    first = Counter(calls)
+    monkeypatch.setattr(orchestration, "evaluate_policy_clearance", _fake_clearance(calls, None))
+    out = results.regenerate(cfg, log=lambda _: None)
+    redone = calls - first
+    assert redone == {"cao/rectangular-stacked": 1, "ablations": 1}  # the interrupted cell and what came after
+    assert [n for n, s in out["status"].items() if s == "ran"] == ["clearance/cao/rectangular-stacked", "ablations",
+                                                                    "bench/bench_tiny"]
+    md = Path(out["paths"]["markdown"]).read_text()
+    assert "### Cao et al." in md and "33.33 [" in md and "dropped: lift" in md  # 1/3 pooled, with its interval
+    dump = json.loads(Path(out["paths"]["json"]).read_text())
+    assert len(dump["policies"]["cao"]["clearance"]["episodes"]) == 4  # both cells, 2 episodes each
+    assert "| x | 1 |" in (bench_dir / "RESULTS.md").read_text()
+    # Nothing left to do: a third run only re-renders the pages.
+    before = Counter(calls)
+    assert set(results.regenerate(cfg, log=lambda _: None)["status"].values()) == {"skipped"} and calls == before
+
+
+def test_list_shows_done_and_todo(tmp_path: Path, capsys):
+    assert results.main(["--test-data", str(tmp_path / "d"), "--work", str(tmp_path / "w"), "--policies", "random",
+                         "--objects", "mixed", "--layouts", "stacked", "--skip-benchmarks", "--list"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert listed == ["todo  data/test", "todo  ap/random", "todo  clearance/random/mixed-stacked", "todo  ablations"]
