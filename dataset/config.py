@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from parcelpick_env.camera.config import MAX_IMAGE_SIDE, MIN_IMAGE_SIDE
 from parcelpick_env.config_checks import (
     config_from_dict,
     config_to_dict,
@@ -76,8 +77,8 @@ class GenerationConfig:
         require_choice(owner, "object_set", self.object_set, OBJECT_SETS + (RANDOM,))
         require(np.isfinite(self.fps_presample) and (self.fps_presample == 0 or self.fps_presample >= 1), owner,
                 f"fps_presample must be 0 (off) or >= 1, got {self.fps_presample}")
-        require(self.width >= 8 and self.height >= 8, owner,
-                f"image must be at least 8x8, got {self.width}x{self.height}")
+        for name in ("width", "height"):  # the camera's own bounds, checked here before any worker starts
+            require_int(owner, name, getattr(self, name), lo=MIN_IMAGE_SIDE, hi=MAX_IMAGE_SIDE)
         require(self.width * self.height >= self.annotation_points, owner,
                 f"{self.width}x{self.height} image has fewer pixels than annotation_points={self.annotation_points}")
         require(self.depth_noise_std is None or (np.isfinite(self.depth_noise_std) and self.depth_noise_std >= 0),

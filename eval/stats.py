@@ -81,7 +81,7 @@ def resample_indices(n: int, resamples: int = RESAMPLES, seed: int = SEED,
 def _interval(estimate: float, stats: np.ndarray, n: int, confidence: float, resamples: int) -> Interval:
     alpha = 1.0 - confidence
     finite = stats[np.isfinite(stats)]
-    if finite.size == 0:
+    if finite.size == 0 or n < 2:  # one unit has no spread to resample: no interval, so no claim either
         return Interval(float(estimate), float("nan"), float("nan"), n, confidence, resamples)
     low, high = np.quantile(finite, [alpha / 2, 1 - alpha / 2])
     return Interval(float(estimate), float(low), float(high), n, confidence, resamples)
@@ -175,8 +175,10 @@ def verdict(difference: Interval, first: str, second: str) -> str:
 
 
 def format_interval(interval: Interval | dict[str, Any] | None, digits: int = 2) -> str:
-    """``12.34 [10.10, 14.60]``; '–' for a missing figure."""
+    """``12.34 [10.10, 14.60]``; ``12.34 [no interval, n=1]`` from a single unit; '–' for a missing figure."""
     if interval is None:
         return "–"
     iv = interval if isinstance(interval, Interval) else Interval.from_dict(interval)
+    if not (np.isfinite(iv.low) and np.isfinite(iv.high)):
+        return f"{iv.estimate:.{digits}f} [no interval, n={iv.n}]"
     return f"{iv.estimate:.{digits}f} [{iv.low:.{digits}f}, {iv.high:.{digits}f}]"

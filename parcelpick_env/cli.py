@@ -8,6 +8,8 @@ or file (``<prog>: error: ...``), with exit status 2 for a bad argument and 1 fo
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import os
 import sys
 import tempfile
@@ -33,12 +35,28 @@ def one_line(exc: BaseException) -> str:
     return " ".join(text.split()) or type(exc).__name__
 
 
+@contextlib.contextmanager
+def _one_line_usage_errors():
+    """argparse prints its whole usage block before an error; here the error alone, on one line."""
+    original = argparse.ArgumentParser.error
+
+    def error(parser: argparse.ArgumentParser, message: str) -> NoReturn:
+        parser.exit(2, f"{parser.prog}: error: {' '.join(message.split())} (see --help)\n")
+
+    argparse.ArgumentParser.error = error  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        argparse.ArgumentParser.error = original  # type: ignore[method-assign]
+
+
 def run_cli(main: Callable[[list[str]], int | None], argv: Sequence[str] | None = None,
             prog: str | None = None) -> int:
     """Run ``main`` on ``argv`` (default ``sys.argv[1:]``, ``--debug`` removed); return its exit status.
 
     Exceptions become one line on stderr: ``UsageError`` exits 2, anything else 1, Ctrl-C 130. argparse's own
-    usage errors (SystemExit) pass through unchanged. With ``--debug`` exceptions propagate with tracebacks.
+    usage errors exit 2 as usual, but as one line without the usage block. With ``--debug`` exceptions
+    propagate with tracebacks.
     """
     args = list(sys.argv[1:] if argv is None else argv)
     debug = DEBUG_FLAG in args or os.environ.get(DEBUG_ENV, "") not in ("", "0")
@@ -46,7 +64,8 @@ def run_cli(main: Callable[[list[str]], int | None], argv: Sequence[str] | None 
     spec = getattr(sys.modules.get("__main__"), "__spec__", None)  # set for `python -m package.module`
     prog = prog or (f"python -m {spec.name}" if spec is not None and spec.name else Path(sys.argv[0]).name)
     try:
-        status = main(args)
+        with _one_line_usage_errors():
+            status = main(args)
     except KeyboardInterrupt:
         if debug:
             raise

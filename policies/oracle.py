@@ -29,9 +29,14 @@ How it picks, per parcel, on the true meshes:
    before tilted ones: the cell picks top-down, and a tilted approach loads the lip in shear and sends
    the arm to awkward poses. Then rank the parcels highest first (tops within ``height_band`` tie, and
    then the one nearest the bin centre comes first: the mount reaches the middle most easily); within a
-   parcel, the smallest lever arm (horizontal distance to the COM) first. Reachability is not checked
-   (no IK here); instead a parcel whose pick failed (``info['outcome']``) goes behind the untried ones
-   for the rest of the episode.
+   parcel, the smallest lever arm (horizontal distance to the COM) first. Above all these, parcels not
+   yet tried come first (a parcel whose pick failed, ``info['outcome']``, goes behind the untried ones
+   for the rest of the episode), then free parcels before pinned ones (another parcel lies on them,
+   ``pinned_parcels``), then parcels no neighbour touches over their upper half (``leaned_on``), then
+   robust seals before ones within ``seal_margin`` of the threshold.
+4. Reachability (``ArmReach``): the arm's own numpy IK, chained from the pre-grasp point through the
+   contact up to the carrying height; the first ranked candidate it reaches is proposed, the unreachable
+   ones checked go to the back (never out).
 
 ``scores`` in the returned ``Candidates`` encode that rank (1 for the first, falling linearly); the
 physical scores of the returned candidates are kept in ``last_scores`` and their parcels in
@@ -42,7 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import open3d as o3d
@@ -83,8 +88,14 @@ class OracleConfig:
     seal_floor: float = EnvConfig().grasp.seal_threshold  # a weaker seal than this holds nothing: never picked
     max_tilt_deg: float = 20.0  # a face this close to level is picked top-down; steeper ones only as a fallback
     height_band: float = 0.02  # m: parcel tops this close are equally high
-    retry_radius: float = 0.02  # m: a parcel whose COM is this close to that of a failed pick counts as tried
+    # m: a parcel outside the library (no asset index) whose COM is this close to that of a failed pick counts
+    # as tried; library parcels are recognised by their asset index (a dropped parcel lands elsewhere)
+    retry_radius: float = 0.02
     side_tilts_deg: tuple[float, ...] = (30.0, 55.0, 80.0)  # fallback probe directions from vertical
+    # fallback approach tilts on a face: the cup comes in this far off the face normal, leaning away from the
+    # nearest bin wall, so the tool and wrist clear a wall the parcel lies against (the bellows absorbs the
+    # tilt up to its bend limit, at a lower seal; the prediction scores it)
+    lean_tilts_deg: tuple[float, ...] = (10.0, 18.0)
     side_azimuths: int = 8  # headings per fallback tilt
     max_face_tilt_deg: float = 60.0  # faces steeper than this are never proposed: the tool and wrist (0.3 m)
     # would reach across the pile or into a wall, and the arm mounted beside the tote cannot hold them
@@ -127,6 +138,7 @@ class GroundTruth:
     obstacles: list[trimesh.Trimesh]  # the bin's floor and walls
     bin_centre: np.ndarray  # (2,)
     obstacles_top: float = 0.0  # m: the bin rim's height
+    asset_index: np.ndarray | None = None  # (P,) library index of each parcel, < 0 outside the library
 
 
 def ground_truth(obs: Mapping[str, Any], library: AssetLibrary) -> GroundTruth:
@@ -154,7 +166,7 @@ def ground_truth(obs: Mapping[str, Any], library: AssetLibrary) -> GroundTruth:
     return GroundTruth(meshes=meshes, coms=np.asarray(obs["parcel_com"], dtype=np.float64)[rows],
                        masses=np.asarray(obs["parcel_mass"], dtype=np.float64)[rows], obstacles=spec.meshes(),
                        bin_centre=np.asarray(spec.center_xy, dtype=np.float64),
-                       obstacles_top=float(spec.floor_z + spec.wall_height))
+                       obstacles_top=float(spec.floor_z + spec.wall_height), asset_index=index)
 
 
 def uncovered_top_points(truth: GroundTruth, offsets: np.ndarray, num_threads: int = 0,
@@ -220,6 +232,29 @@ def pinned_parcels(truth: GroundTruth, offsets: np.ndarray, num_threads: int = 0
     return pinned
 
 
+def leaned_on(truth: GroundTruth, gap: float = 0.005, samples: int = 200) -> np.ndarray:
+    """(P,) bool: parcels another parcel's hull comes within ``gap`` of over their upper half (above the
+    COM). There a neighbour leans on it or presses its side, and as the parcel rises the contact drags on
+    the lift with a lever about the cup (the lift drops seen on stacked piles were such side contacts).
+    Surface samples pushed ``gap`` outward are tested for lying inside any hull (its own hull is convex,
+    so they lie outside it)."""
+    count = len(truth.meshes)
+    if count < 2:
+        return np.zeros(count, dtype=bool)
+    hulls = [m.convex_hull for m in truth.meshes]
+    points, owner = [], []
+    for k, hull in enumerate(hulls):
+        where, face = trimesh.sample.sample_surface(hull, samples, seed=k)
+        upper = where[:, 2] > truth.coms[k, 2]
+        points.append(where[upper] + gap * hull.face_normals[face[upper]])
+        owner.append(np.full(int(upper.sum()), k))
+    query = o3d.core.Tensor.from_numpy(np.concatenate(points).astype(np.float32))
+    inside = build_scene(hulls).compute_occupancy(query).numpy() > 0.5
+    out = np.zeros(count, dtype=bool)
+    out[np.unique(np.concatenate(owner)[inside])] = True
+    return out
+
+
 @dataclass
 class PredictedGrasp:
     """What the cell will find at each candidate, predicted on the true scene (``predicted_grasp``)."""
@@ -245,6 +280,21 @@ def hull_seats(hulls: o3d.t.geometry.RaycastingScene, points: np.ndarray, normal
     own = (ids == owner) & np.isfinite(t)
     tips = np.where(own[:, None], origins - np.where(own, t, 0.0)[:, None] * normals, points)
     return tips, own
+
+
+def leaned_approaches(points: np.ndarray, normals: np.ndarray, owner: np.ndarray, bin_centre: np.ndarray,
+                      tilts_deg: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The same contact points, each approached off its face normal by every tilt in ``tilts_deg``, turned
+    towards the bin centre about the horizontal axis across that direction (the approach axis is -normal)."""
+    inward = np.zeros_like(points)
+    inward[:, :2] = bin_centre - points[:, :2]
+    inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-9)
+    out = []
+    for tilt in np.radians(np.asarray(tilts_deg, dtype=np.float64)):
+        tilted = np.cos(tilt) * normals + np.sin(tilt) * inward  # the tool leans towards the centre
+        out.append(tilted / np.linalg.norm(tilted, axis=1, keepdims=True))
+    k = len(out)
+    return np.tile(points, (k, 1)), np.concatenate(out) if out else np.zeros((0, 3)), np.tile(owner, k)
 
 
 def predicted_grasp(truth: GroundTruth, points: np.ndarray, normals: np.ndarray, owner: np.ndarray,
@@ -336,8 +386,8 @@ class OraclePolicy(Policy):
         self.last_scores: SuctionScores | None = None
         self.last_ratios: np.ndarray | None = None  # (K, 6) predicted ring ratios at rest of the returned picks
         self.last_object_ids: np.ndarray | None = None
-        self._aimed_com: np.ndarray | None = None  # COM of the parcel the last returned pick was on
-        self._failed_coms: list[np.ndarray] = []  # COMs of parcels whose pick failed this episode
+        self._aimed_com: tuple[int, np.ndarray] | None = None  # (asset index, COM) of the last pick's parcel
+        self._failed_coms: list[tuple[int, np.ndarray]] = []  # the same, of parcels whose pick failed
 
     def reset(self, seed: int | None = None) -> None:
         """A new episode: forget which picks failed."""
@@ -373,6 +423,9 @@ class OraclePolicy(Policy):
         if len(bare):
             found = [uncovered_top_points(truth, self._offsets, suction.num_threads, d, bare)
                      for d in self.config.probe_directions()]
+            faces = np.isin(owner, bare)
+            found.append(leaned_approaches(points[faces], normals[faces], owner[faces], truth.bin_centre,
+                                           self.config.lean_tilts_deg))
             side = tuple(np.concatenate([f[i] for f in found]) for i in range(3))
             side_grasp = predicted_grasp(truth, *side, suction, self.cup)
             points, normals, owner = (np.concatenate([a, b]) for a, b in zip((points, normals, owner), side))
@@ -392,7 +445,9 @@ class OraclePolicy(Policy):
         self.last_scores = type(scores)(*(getattr(scores, f.name)[order] for f in dataclasses.fields(scores)))
         self.last_ratios = grasp.ratios[order]
         self.last_object_ids = owner[order]
-        self._aimed_com = truth.coms[owner[order[0]]].copy()
+        k = int(owner[order[0]])
+        index = -1 if truth.asset_index is None else int(truth.asset_index[k])
+        self._aimed_com = (index, truth.coms[k].copy())
         rank = 1.0 - np.arange(len(order)) / len(order)
         return Candidates(points=points[order].astype(np.float32), normals=normals[order].astype(np.float32),
                           scores=rank.astype(np.float32))
@@ -406,8 +461,9 @@ class OraclePolicy(Policy):
         return np.flatnonzero((grasp.seal >= c.seal_floor) & (grasp.collision > 0) & (grasp.worst < 1.0) & upright)
 
     def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth) -> np.ndarray:
-        """Tip positions the pick passes: pre-grasp, contact, then straight up to the carrying height (the
-        env's rule: the held parcel's underside ``clearance`` above the rim and the rest of the pile)."""
+        """Tip positions the pick passes: pre-grasp, contact, straight up to the carrying height (the env's
+        rule: the held parcel's underside ``clearance`` above the rim and the rest of the pile), then over
+        to the drop zone."""
         g = self.grasp
         others = [m.bounds[1, 2] for k, m in enumerate(truth.meshes) if k != parcel]
         rim = float(truth.obstacles_top)
@@ -416,7 +472,12 @@ class OraclePolicy(Policy):
         heights = np.arange(point[2], carry, self.config.reach_step)[1:]
         up = np.column_stack([np.full(len(heights) + 1, point[0]), np.full(len(heights) + 1, point[1]),
                               np.append(heights, carry)])
-        return np.vstack([point + g.pregrasp_distance * normal, point, up])
+        # then over to the drop zone at that height, tool still on the approach axis (a tilted pick is
+        # carried tilted; the env's detour round the base is not modelled, so this may only demote a pick)
+        drop = np.array([g.drop_zone[0], g.drop_zone[1], max(g.drop_zone[2], carry)])
+        legs = max(1, int(np.ceil(np.linalg.norm(drop - up[-1]) / (2 * self.config.reach_step))))
+        over = up[-1] + (drop - up[-1]) * (np.arange(1, legs + 1)[:, None] / legs)
+        return np.vstack([point + g.pregrasp_distance * normal, point, up, over])
 
     def _reachable_first(self, order: np.ndarray, points: np.ndarray, normals: np.ndarray, owner: np.ndarray,
                          truth: GroundTruth) -> np.ndarray:
@@ -461,11 +522,13 @@ class OraclePolicy(Policy):
         lever = np.linalg.norm(points[admissible, :2] - truth.coms[parcels, :2], axis=1)
         level = normals[admissible, 2] >= np.cos(np.radians(c.max_tilt_deg))
         tried = np.zeros(len(truth.meshes), dtype=np.int64)
-        for com in self._failed_coms:
-            tried += np.linalg.norm(truth.coms - com, axis=1) < c.retry_radius
+        indices = np.full(len(truth.meshes), -1) if truth.asset_index is None else truth.asset_index
+        for index, com in self._failed_coms:
+            tried += (indices == index) if index >= 0 else (np.linalg.norm(truth.coms - com, axis=1) < c.retry_radius)
         pinned = pinned_parcels(truth, self._offsets)
+        leaned = leaned_on(truth)
         sound = (grasp.seal[admissible] >= c.min_seal) & (grasp.worst[admissible] <= self.load_target)
         marginal = grasp.seal[admissible] < c.seal_floor + c.seal_margin
         # np.lexsort sorts by the last key first
         return admissible[np.lexsort((lever, centrality[parcels], -tier[parcels], ~level, ~sound, marginal,
-                                      pinned[parcels], tried[parcels]))]
+                                      leaned[parcels], pinned[parcels], tried[parcels]))]

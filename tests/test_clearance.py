@@ -88,7 +88,7 @@ def test_summarise_pools_episodes_per_cell_and_overall():
     # Each rate with its bootstrap interval over the cell's episodes: 3/4 and 2/6 successes pool to 5/10; a
     # resample of the two episodes gives 4/8, 5/10 or 6/12 ... so the interval runs from 2/6 to 3/4.
     assert "| rectangular | 50.00 [33.33, 75.00] / 71.43 [50.00, 100.00] | – |" in lines
-    assert "| planar | – | 20.00 [20.00, 20.00] / 50.00 [50.00, 50.00] |" in lines  # one episode: no spread
+    assert "| planar | – | 20.00 [no interval, n=1] / 50.00 [no interval, n=1] |" in lines  # one episode: no spread
     assert [ln.split(" | ")[0] for ln in lines[2:6]] == ["| rectangular", "| planar", "| cylindrical", "| mixed"]
     assert "R_grasp 40.00 [" in table and "R_object 66.67 [" in table and "(6/15 attempts, 6/9 parcels;" in table
     assert "unreachable 4" in table and "invalid_action 0" in table

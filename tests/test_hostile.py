@@ -342,6 +342,17 @@ def test_debug_flag_restores_the_traceback(capsys):
         run_cli(main, ["--debug"])
 
 
+def test_argparse_errors_are_one_line_too(capsys):
+    """An unknown flag or a value argparse refuses: its one error line, not the usage block."""
+    from dataset.generate import main as generate_main
+
+    for argv in (["--out", "x", "--bogus"], ["--out", "x", "--scenes", "many"]):
+        with pytest.raises(SystemExit) as exit_info:
+            run_cli(generate_main, argv)
+        assert exit_info.value.code == 2
+        _one_line(capsys.readouterr().err, argv[-1])
+
+
 def test_clearance_script_prints_one_line_and_exits_nonzero():
     run = subprocess.run([sys.executable, "-m", "eval.clearance", "--policy", "dexnet", "--checkpoint", "missing.pt"],
                          cwd=REPO, capture_output=True, text=True, timeout=120, check=False)

@@ -59,14 +59,16 @@ def test_oracle_picks_the_true_top_face_of_the_highest_uncovered_parcel_at_its_c
     assert np.linalg.norm(found.points[0, :2] - obs["parcel_position"][1, :2]) > 0.02
     assert found.points[0, 2] == pytest.approx(0.18, abs=1e-3)  # on its true top face
     np.testing.assert_allclose(found.normals[0], [0, 0, 1], atol=1e-3)
-    # sound picks (a sound seal, every predicted ring ratio within the carry's load target) first, and of
-    # those every one on the top carton first
+    # the free top carton (nothing on it, nothing leaning on it) comes first, every candidate of it; within
+    # it, sound picks (a sound seal, every predicted ring ratio within the carry's load target) first
     seal = oracle.last_scores.seal
+    assert np.all(seal >= oracle.config.seal_floor)
+    on_top = int(np.sum(owner == 1))
+    assert on_top > 0 and np.all(owner[:on_top] == 1)
     sound = (seal >= oracle.config.min_seal) & (oracle.last_ratios.max(axis=1) <= oracle.load_target)
-    weak_from = int(np.argmin(sound)) if not sound.all() else len(sound)
-    assert np.all(seal >= oracle.config.seal_floor) and not sound[weak_from:].any()
-    first_other = int(np.argmax(owner[sound] != 1))
-    assert first_other > 0 and np.all(owner[sound][first_other:] != 1)
+    top_sound = sound[:on_top]
+    weak_from = int(np.argmin(top_sound)) if not top_sound.all() else on_top
+    assert weak_from > 0 and not top_sound[weak_from:].any()
     # the bottom carton is picked only where it is uncovered: never under the top one's footprint
     below = found.points[owner == 0]
     assert len(below) > 0
@@ -144,3 +146,71 @@ def test_oracle_clears_a_10_parcel_stacked_pile():
     assert result.parcels_placed >= 9
     assert result.reason == "cleared", result.outcomes
     assert result.parcels_cleared == result.parcels_placed
+
+
+def test_oracle_sees_which_parcels_are_pinned_under_others():
+    """The bottom carton carries the top one: lifting it would drag it, so it is pinned; the others are free."""
+    from parcelpick_env.assets.library import AssetLibrary
+    from policies.oracle import ground_truth, leaned_on, pinned_parcels
+
+    oracle = OraclePolicy()
+    truth = ground_truth(state_obs(STACK), AssetLibrary.default(0))
+    np.testing.assert_array_equal(pinned_parcels(truth, oracle._offsets), [True, False, False])
+    leaned = leaned_on(truth)  # the top carton's upper half touches nothing; the bottom one's top carries it
+    assert leaned[0] and not leaned[1]
+
+
+def test_oracle_reach_check_uses_the_cells_own_arm():
+    """The arm's numpy IK reaches the tote centre top-down from the floor to the carrying height, and not
+    a point 1.5 m from the base; the tool tip it solves for is where the arm's forward kinematics puts it."""
+    from policies.oracle import ArmReach
+
+    reach, spec = ArmReach(), BinSpec()
+    x, y = spec.center_xy
+    line = np.array([[x, y, spec.floor_z + z] for z in (0.05, 0.2, 0.45)])
+    down = np.array([0.0, 0.0, -1.0])
+    assert reach.reaches(line, down)
+    assert not reach.reaches(np.array([[1.5, 0.0, 0.3]]), down)
+    q = reach.kin.refine(reach.seed, line[1], down, reach.seed, reach.lower, reach.upper, reach.tol_p, reach.tol_a)
+    tip, axis = reach.kin.forward(q)[:2]
+    assert np.linalg.norm(tip - line[1]) < reach.tol_p and axis @ down > np.cos(reach.tol_a)
+
+
+def test_oracle_predicts_the_gap_where_the_cup_rests_on_a_hull():
+    """The cup comes to rest on the parcel's convex hull (what physics collides): on a plain carton that
+    is its true top (a sound seal); on a tray whose 1 cm rims the hull bridges, the lip hovers 1 cm above
+    the true floor of the tray (no seal, as the env's contact seal will find)."""
+    import trimesh
+
+    from policies.oracle import GroundTruth, predicted_grasp
+
+    def box(extents, centre):
+        mesh = trimesh.creation.box(extents=extents)
+        mesh.apply_translation(centre)
+        return mesh
+
+    carton = box((0.20, 0.20, 0.05), (-0.15, 0.0, 0.025))
+    tray = trimesh.util.concatenate([box((0.20, 0.20, 0.04), (0.15, 0.0, 0.02)),
+                                     box((0.02, 0.20, 0.01), (0.06, 0.0, 0.045)),
+                                     box((0.02, 0.20, 0.01), (0.24, 0.0, 0.045))])
+    truth = GroundTruth(meshes=[carton, tray], coms=np.array([[-0.15, 0.0, 0.025], [0.15, 0.0, 0.02]]),
+                        masses=np.array([0.5, 0.5]), obstacles=BinSpec().meshes(), bin_centre=np.zeros(2),
+                        obstacles_top=0.3)
+    points = np.array([[-0.15, 0.0, 0.05], [0.15, 0.0, 0.04]])  # each top's centre, on the true mesh
+    normals = np.tile([0.0, 0.0, 1.0], (2, 1))
+    grasp = predicted_grasp(truth, points, normals, np.arange(2), SUCTION, EnvConfig().grasp.cup)
+    assert grasp.seal[0] > 0.9 and grasp.seal[1] == 0.0
+    assert grasp.ratios.shape == (2, 6) and grasp.worst[0] < 0.2  # 0.5 kg on a sound seal hangs easily
+
+
+def test_leaned_approaches_tilt_towards_the_bin_centre_by_the_asked_angle():
+    """Fallback for a parcel against a wall: the same point, approached off its normal, leaning inwards."""
+    from policies.oracle import leaned_approaches
+
+    points = np.array([[0.30, 0.0, 0.05], [-0.2, 0.1, 0.05]])
+    normals = np.tile([0.0, 0.0, 1.0], (2, 1))
+    p2, n2, o2 = leaned_approaches(points, normals, np.array([3, 4]), np.zeros(2), (10.0, 18.0))
+    assert p2.shape == (4, 3) and o2.tolist() == [3, 4, 3, 4]
+    np.testing.assert_allclose(np.degrees(np.arccos(n2[:, 2])), [10, 10, 18, 18], atol=1e-9)
+    inward = -points[:, :2] / np.linalg.norm(points[:, :2], axis=1, keepdims=True)
+    np.testing.assert_allclose(n2[:, :2] / np.linalg.norm(n2[:, :2], axis=1, keepdims=True), np.tile(inward, (2, 1)))

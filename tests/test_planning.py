@@ -87,6 +87,26 @@ def test_plans_are_deterministic_under_the_seed(world):
         np.testing.assert_array_equal(x, y)
 
 
+def test_a_loaded_machine_plans_the_same_path(world, monkeypatch):
+    """The search budget is state checks, not seconds: slowing every check (a busy machine) changes nothing."""
+    import time
+
+    c, arm, q_a, q_b = world
+    box(c, [0.06, 0.06, 0.3], [0.0, 0.05, 0.3])
+    quick = MotionPlanner(arm, c, PlannerConfig(seed=7, retries=0))
+    fast = quick.plan(q_a, q_b)
+    checks = quick.stats.checks
+    slow = MotionPlanner(arm, c, PlannerConfig(seed=7, retries=0))
+    original = slow._check
+    monkeypatch.setattr(slow, "_check", lambda *a, **k: (time.sleep(0.0005), original(*a, **k))[1])
+    loaded = slow.plan(q_a, q_b)
+    assert fast is not None and loaded is not None and slow.stats.checks == checks
+    for x, y in zip(fast, loaded, strict=True):
+        np.testing.assert_array_equal(x, y)
+    tiny = MotionPlanner(arm, c, PlannerConfig(seed=7, retries=0, check_budget=5))
+    assert tiny.plan(q_a, q_b) is None and "within 5 state checks" in tiny.last_failure
+
+
 def test_a_clear_move_takes_the_straight_fast_path(world):
     _c, arm, q_a, q_b = world
     path = arm.planner.plan(q_a, q_b)

@@ -80,7 +80,7 @@ def test_report_has_our_and_paper_numbers_and_writes_pngs(report, tmp_path: Path
     assert "Dex-Net 3.0 (not available: FileNotFoundError: no model at x.pt)" in md
     assert "– / 9.56" in md  # the paper's Dex-Net number stays beside the missing run
     # Table V: our pooled rates beside the paper's robot; outcome counts.
-    assert "| rectangular | 75.00 [75.00, 75.00] / 75.00 [75.00, 75.00] | 96.43 / 100.00 |" in md  # one episode
+    assert "| rectangular | 75.00 [no interval, n=1] / 75.00 [no interval, n=1] | 96.43 / 100.00 |" in md  # one episode
     assert "| Diffusion-Suction | 4 | 3 |" in md and "failed: RuntimeError: boom" in md
     # Ablations: the measured row with the paper's, every untrained variant with its command.
     assert "28.10" in md and "not trained" in md and "train --no-normals" in md and "train --encoder pointnet" in md
@@ -104,7 +104,7 @@ def test_differences_are_signed_and_rank_is_checked(report):
     ours_first = report["policies"]["diffusion"]["ap"]["AP"] > cao
     assert ("NOT the same" in ranking) != ours_first  # the paper ranks Diffusion-Suction above Cao et al.
     paper_grasp = TABLE_V[("rectangular", "scattered")][0]
-    assert any(f"R_grasp (simulation vs real robot): ours 75.00 [75.00, 75.00], paper {paper_grasp:.2f}" in line
+    assert any(f"R_grasp (simulation vs real robot): ours 75.00 [no interval, n=1], paper {paper_grasp:.2f}" in line
                for line in lines)
     assert any("Dex-Net 3.0: no AP of ours" in line for line in lines)
 

@@ -77,6 +77,7 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     bench_dir = tmp_path / "benchmarks"
     bench_dir.mkdir()
     (bench_dir / "bench_tiny.py").write_text("print('| metric | value |')\nprint('| x | 1 |')\n")
+    (bench_dir / "RESULTS.md").write_text("# Benchmarks\n\nHand-written goals: keep me.\n")
     monkeypatch.setattr(results, "REPO", tmp_path)
     calls: Counter = Counter()
     monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg: lambda: calls.update(["data"]) or {})
@@ -106,6 +107,8 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     # Nothing left to do: a third run only re-renders the pages.
     before = Counter(calls)
     assert set(results.regenerate(cfg, log=lambda _: None)["status"].values()) == {"skipped"} and calls == before
+    page = (bench_dir / "RESULTS.md").read_text()  # regenerated twice: the hand-written text stays, once
+    assert page.count("keep me") == 1 and page.count(results.GENERATED_BEGIN) == 1 and page.count("| x | 1 |") == 1
 
 
 def test_list_shows_done_and_todo(tmp_path: Path, capsys):

@@ -96,3 +96,10 @@ def test_bad_input_raises_and_formatting():
     iv = Interval(12.345, 10.1, 14.6, n=5)
     assert format_interval(iv) == "12.35 [10.10, 14.60]" == format_interval(iv.to_dict())
     assert format_interval(None) == "–"
+
+
+def test_a_single_unit_gives_no_interval_and_no_claim():
+    """One episode (make demo) has no spread to resample: printing [50, 50] would claim certainty."""
+    one = bootstrap_ratio([2], [4], scale=100.0)
+    assert one.estimate == 50.0 and not one.excludes(0.0)
+    assert format_interval(one) == "50.00 [no interval, n=1]"

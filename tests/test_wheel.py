@@ -54,7 +54,7 @@ def test_wheel_ships_every_checkpoint_and_the_urdf(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
     shipped = [p.relative_to(ROOT).as_posix() for name in ("parcelpick_env", "policies")
                for p in (ROOT / name).rglob("*") if p.suffix in SHIPPED_SUFFIXES and "__pycache__" not in p.parts]
-    assert any(s.endswith("ppo_pixel.zip") for s in shipped) and any(s.endswith(".urdf") for s in shipped)
+    assert any(s.endswith("ppo_pixel.safetensors") for s in shipped) and any(s.endswith(".urdf") for s in shipped)
     assert sorted(set(shipped) - names) == []
 
 

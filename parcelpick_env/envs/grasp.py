@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 from parcelpick_env.envs.config import GraspConfig
 from parcelpick_env.robot.arm import MAX_IK_JUMP, Contact, Gen3Arm
 from parcelpick_env.robot.planning import Attachment
-from parcelpick_env.robot.timing import Trajectory, hold_trajectory, joint_trajectory, path_trajectory
+from parcelpick_env.robot.timing import Trajectory, concatenate, hold_trajectory, joint_trajectory, path_trajectory
 from parcelpick_env.scene.scene import ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 from parcelpick_env.suction.config import SuctionConfig
@@ -336,6 +336,8 @@ class PickExecutor:
         hover[2] = max(pre[2], clear)
         pick = _Pick(point, normal, axis, hover, pre)
         pick.q_hover = arm.ik(hover, axis, seed=self.ready_q)
+        if pick.q_hover is None and hover[2] > pre[2] + 1e-3:  # high above a heap: solve low, climb the line
+            pick.q_hover = self._climb(pre, hover, axis)
         if pick.q_hover is None:
             return self._report("plan", "unreachable", Failure("hover", condition="ik"))
         q_pre = pick.q_hover
@@ -350,6 +352,17 @@ class PickExecutor:
             return self._report("plan", "unreachable", Failure("approach", condition=why))
         self._report("plan")
         return pick
+
+    def _climb(self, low: np.ndarray, high: np.ndarray, axis: np.ndarray) -> np.ndarray | None:
+        """Joint angles for ``high`` reached from an IK answer at ``low`` and up the straight line between
+        them (``cartesian_path``): a far, high hover pose that the seed above the bin centre does not
+        converge to is usually one small step from a configuration that reaches the pile below it."""
+        q_low = self.arm.ik(low, axis, seed=self.ready_q)
+        if q_low is None:
+            return None
+        n = max(1, math.ceil(float(np.linalg.norm(high - low)) / LINE_STEP))
+        qs = self.arm.cartesian_path(q_low, low + (high - low) * (np.arange(1, n + 1)[:, None] / n), axis)
+        return None if qs is None else np.asarray(qs[-1])
 
     def _hover(self, scene: Scene, pick: _Pick) -> MoveReport:
         return self._free_move("hover", pick.q_hover)
@@ -525,9 +538,9 @@ class PickExecutor:
         tool = ToolState(*self.kin.tool_motion(arm.q, np.zeros_like(arm.q), np.zeros_like(arm.q)))
         a_max = pick.monitor.allowed_acceleration(tool, *self._held_pose(pick, tool), g.carry_load_target,
                                                   g.min_carry_acceleration)
-        traj, why = self._line(arm.q, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max, pick.x_axis)
-        if traj is None:  # the held yaw may need an IK branch switch: let the cup turn (the wrench has I alpha)
-            traj, why = self._line(arm.q, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max)
+        traj, why = self._carry_line(arm.q, end, pick, a_max)
+        if traj is None and move == "transport":  # the chord dips inside the arm's reach: round the base
+            traj, why = self._carry_around(arm.q, end, pick, a_max, why)
         if traj is None:
             return self._report(move, "unreachable", Failure(move, condition=why), t_start=t0)
         if move == "transport":  # the held parcel is part of the check: it must clear the rim and the pile
@@ -544,6 +557,39 @@ class PickExecutor:
             outcome, failure = res.stopped_by
             return self._report(move, outcome, failure, res.steps, t0)
         return self._report(move, steps=res.steps, t_start=t0)
+
+    def _carry_line(self, q0: np.ndarray, end: np.ndarray, pick: _Pick, a_max: float
+                    ) -> tuple[Trajectory | None, str | None]:
+        """A carrying line at the contact axis, the cup's yaw held; failing that with the yaw free (the
+        held yaw may need an IK branch switch: the cup may then turn, and the wrench has I alpha)."""
+        g = self.grasp
+        traj, why = self._line(q0, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max, pick.x_axis)
+        if traj is None:
+            traj, why = self._line(q0, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max)
+        return traj, why
+
+    def _carry_around(self, q0: np.ndarray, end: np.ndarray, pick: _Pick, a_max: float, why: str | None
+                      ) -> tuple[Trajectory | None, str | None]:
+        """Transport in two straight legs through a via point that keeps the tool out in the arm's reach.
+
+        The straight chord from a far corner of the tote to the drop zone passes close to the base, where
+        a top-down tool needs the shoulder and wrist near their singular poses (IK jumps or fails). The via
+        point lies at the mean azimuth about the base axis of the two ends and at the larger of their
+        distances from it, at carrying height: the path a cell's teach-in would take round the column.
+        Each leg is timed rest-to-rest."""
+        base = np.asarray(self.arm.config.base_position[:2], dtype=np.float64)
+        start = self.kin.forward(q0)[0]
+        rel = np.array([start[:2] - base, end[:2] - base])
+        heading = np.arctan2(*np.sum(rel / np.linalg.norm(rel, axis=1, keepdims=True), axis=0)[::-1])
+        reach = float(np.linalg.norm(rel, axis=1).max())
+        via = np.array([*(base + reach * np.array([np.cos(heading), np.sin(heading)])), max(start[2], end[2])])
+        first, why_first = self._carry_line(q0, via, pick, a_max)
+        if first is None:
+            return None, f"{why} (round the base: {why_first})"
+        second, why_second = self._carry_line(first.q[-1], end, pick, a_max)
+        if second is None:
+            return None, f"{why} (round the base: {why_second})"
+        return concatenate([first, second]), None
 
     def _lift_height(self, scene: Scene, pick: _Pick) -> float:
         """Tip height for carrying: the pile top (every other parcel and fixture) or the rim, whichever

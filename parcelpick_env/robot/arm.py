@@ -243,8 +243,8 @@ class Gen3Arm:
         ranges = (self.upper - self.lower).tolist()
         best: tuple[float, np.ndarray] | None = None
         try:
-            def guesses() -> Iterator[np.ndarray]:
-                yield seed
+            def guesses() -> Iterator[tuple[np.ndarray, np.ndarray, int]]:  # (start, rest pose, iterations)
+                yield seed, seed, 60
                 for k in range(1 if xa is not None else cfg.yaw_candidates):
                     self.set_joints(seed)
                     if xa is not None:
@@ -256,10 +256,15 @@ class Gen3Arm:
                         lowerLimits=self.lower.tolist(), upperLimits=self.upper.tolist(), jointRanges=ranges,
                         restPoses=seed.tolist(), maxNumIterations=cfg.ik_iterations, residualThreshold=1e-5,
                         physicsClientId=self.client)
-                    yield np.clip(np.array(sol[:ARM_DOF]), self.lower, self.upper)
+                    yield np.clip(np.array(sol[:ARM_DOF]), self.lower, self.upper), seed, 60
+                # last, the Kinova home (elbow up, tool forward), pulled towards itself, with a longer search:
+                # the damped least squares from there finds high or far top-down poses that a seed tucked
+                # near the pile and pybullet's guesses miss (the oracle's reach check solves the same way)
+                home = np.asarray(cfg.ik_seed, dtype=np.float64)
+                yield home, home, 150
 
-            for guess in guesses():
-                q = self._refine(guess, target, ax, seed, xa)
+            for guess, rest, iterations in guesses():
+                q = self._refine(guess, target, ax, rest, xa, iterations=iterations)
                 if q is None:
                     continue
                 self.set_joints(q)

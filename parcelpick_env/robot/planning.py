@@ -52,7 +52,12 @@ SELF_PAIRS: tuple[tuple[str, str], ...] = tuple((a, b) for a in _DISTAL for b in
 class PlannerConfig:
     """How free-space moves are planned and checked."""
 
-    time_limit: float = 1.0  # s of RRTConnect search per plan (a failure after it is reported)
+    # RRTConnect's budget per search, in state-validity checks (about 0.1 ms each in a 30-parcel pile), not
+    # wall-clock seconds: a timed search finds a path on an idle machine and misses it on a loaded one, so
+    # the same seed would give another episode. A search that exhausts it is tried again with the next
+    # seed and twice the budget, ``retries`` times.
+    check_budget: int = 8000
+    retries: int = 2
     margin: float = 0.01  # m: clearance every link, the tool and a held parcel keep while planning
     resolution: float = 0.01  # rad: longest joint-space step (Euclidean) between checked states
     seed: int = 1  # OMPL RNG seed, set before every search (0 is not allowed by OMPL)
@@ -62,15 +67,19 @@ class PlannerConfig:
     self_collision: bool = True  # also check the wrist and tool against the base, shoulder and upper arm
 
     def __post_init__(self) -> None:
-        for name in ("time_limit", "resolution", "rrt_range", "joint_window"):
+        for name in ("resolution", "rrt_range", "joint_window"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"PlannerConfig.{name} must be > 0, got {getattr(self, name)}")
+        if isinstance(self.check_budget, bool) or not isinstance(self.check_budget, int) or self.check_budget < 1:
+            raise ValueError(f"PlannerConfig.check_budget must be an int >= 1, got {self.check_budget!r}")
         if self.margin < 0:
             raise ValueError(f"PlannerConfig.margin must be >= 0, got {self.margin}")
         if self.seed < 1:
             raise ValueError(f"PlannerConfig.seed must be >= 1 (OMPL rejects 0), got {self.seed}")
         if self.shortcut_rounds < 0:
             raise ValueError(f"PlannerConfig.shortcut_rounds must be >= 0, got {self.shortcut_rounds}")
+        if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
+            raise ValueError(f"PlannerConfig.retries must be an int >= 0, got {self.retries!r}")
 
 
 @dataclass
@@ -285,7 +294,7 @@ class MotionPlanner:
     def plan(self, q_start, q_goal, attached: Attachment | None = None, ignore_bodies: Iterable[int] = ()
              ) -> list[np.ndarray] | None:
         """A collision-free joint polyline [q_start, ..., q_goal], or None (reason in ``last_failure``
-        and ``stats.failure``: start/goal in collision, or no path within ``time_limit``).
+        and ``stats.failure``: start/goal in collision, or no path within the ``check_budget``).
 
         A start or goal closer than ``margin`` to something (e.g. a pre-grasp pose just above the pile)
         but not touching it is accepted: the whole plan then keeps half that clearance instead
@@ -313,9 +322,15 @@ class MotionPlanner:
                 if self._segment(q0, q1, attached, m, exclude) is None:
                     path, method = [q0, q1], "straight"
                 else:
-                    path = self._rrt(q0, q1, attached, m, exclude)
+                    budget = self.config.check_budget
+                    for attempt in range(self.config.retries + 1):
+                        path = self._rrt(q0, q1, attached, m, exclude, budget * 2**attempt, attempt)
+                        if path is not None:
+                            break
                     if path is None:
-                        failure = f"no collision-free path within {self.config.time_limit:.2f} s (RRTConnect)"
+                        spent = budget * (2 ** (self.config.retries + 1) - 1)
+                        failure = (f"no collision-free path within {spent} state checks (RRTConnect, "
+                                   f"{self.config.retries + 1} searches)")
                     else:
                         path, method = self._shortcut(path, attached, m, exclude), "rrt"
         self.stats = PlanStats(method, time.perf_counter() - t0, self.checks - checks0,
@@ -332,12 +347,17 @@ class MotionPlanner:
         hi[wide] = np.minimum(hi[wide], np.maximum(q0, q1)[wide] + w)
         return lo, hi
 
-    def _rrt(self, q0, q1, attached, margin, exclude) -> list[np.ndarray] | None:
+    def _rrt(self, q0, q1, attached, margin, exclude, budget: int | None = None,
+             attempt: int = 0) -> list[np.ndarray] | None:
+        """RRTConnect until a path or ``budget`` state checks (default the config's), seeded with the config's
+        seed + ``attempt``: the same inputs give the same answer however loaded the machine is."""
         cfg = self.config
+        budget = cfg.check_budget if budget is None else budget
+        checked = [0]
         level = ou.getLogLevel()
         ou.setLogLevel(ou.LogLevel.LOG_NONE)  # re-seeding after the first plan logs an error by design
         try:
-            ou.RNG.setSeed(cfg.seed)
+            ou.RNG.setSeed(cfg.seed + attempt)
             space = ob.RealVectorStateSpace(ARM_DOF)
             lo, hi = self._bounds(q0, q1)
             bounds = ob.RealVectorBounds(ARM_DOF)
@@ -348,6 +368,7 @@ class MotionPlanner:
             ss = og.SimpleSetup(space)
 
             def valid(state) -> bool:
+                checked[0] += 1
                 q = np.fromiter((state[i] for i in range(ARM_DOF)), dtype=np.float64, count=ARM_DOF)
                 return self._check(q, attached, margin, exclude) is None
 
@@ -361,7 +382,7 @@ class MotionPlanner:
             start[0:ARM_DOF] = q0.tolist()
             goal[0:ARM_DOF] = q1.tolist()
             ss.setStartAndGoalStates(start, goal)
-            status = ss.solve(cfg.time_limit)
+            status = ss.solve(ob.PlannerTerminationCondition(lambda: checked[0] >= budget))
             if not ss.haveExactSolutionPath():
                 return None
             path = ss.getSolutionPath()

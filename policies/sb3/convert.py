@@ -2,6 +2,9 @@
 
     python -m policies.sb3.convert policies/sb3/ppo_pixel.zip            # -> policies/sb3/ppo_pixel.safetensors
 
+The shipped model was converted this way from the zip that commit bbaf400 shipped; the zip is no longer in
+the tree (nothing loads it), and ``git show bbaf400:policies/sb3/ppo_pixel.zip > ppo_pixel.zip`` restores it.
+
 This is the one place that calls ``PPO.load``, which unpickles the zip's ``data`` entry and so runs any
 code it holds: run it only on a file you made or otherwise trust. The output is checked by reloading it
 through the safe loader and comparing actions with the original model on random observations.
