@@ -56,7 +56,6 @@ from parcelpick_env.scene.scene import Scene
 from parcelpick_env.sim.simulator import Simulator
 
 
-
 def pixel_from_action(action: np.ndarray, width: int, height: int) -> tuple[int, int]:
     """The (row, col) a ``pixel``-mode action in [-1, 1]^2 (column, row) selects."""
     col = int(round((float(action[0]) + 1) / 2 * (width - 1)))
@@ -74,7 +73,7 @@ def step_info(result: PickResult) -> dict[str, Any]:
     ``NO_BODY`` and ``None`` strings for a failure that did not happen. Gymnasium's vector envs stack
     infos into typed arrays, so a key that is a float on one step and None on another breaks them; NaN
     placeholders would break the env checker's same-seed equality instead."""
-    failure = (result.failure or Failure(move=None)).as_dict()  # type: ignore[arg-type]
+    failure = result.failure.as_dict() if result.failure else dict.fromkeys(f.name for f in dataclasses.fields(Failure))
     failure["body"] = NO_BODY if failure["body"] is None else int(failure["body"])
     contacted = result.contact_point is not None
     contact = np.asarray(result.contact_point, np.float64) if contacted else np.zeros(3)
