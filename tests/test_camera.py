@@ -192,3 +192,20 @@ def test_tiny_renderer_matches_egl(box_world):
     both = (a.depth > 0) & (b.depth > 0) & (a.segmentation == b.segmentation)
     assert np.median(np.abs(a.depth[both] - b.depth[both])) < 1e-3
 
+
+
+@pytest.mark.parametrize("normal_method", ["open3d", "organized"])
+def test_normals_at_a_few_points_match_the_full_estimate(box_world, normal_method):
+    """``capture(normals=False)`` + ``normals_at`` (what the dataset does) gives ``capture``'s own normals."""
+    sim, scene = box_world
+    cam = Camera(CameraConfig(width=160, height=120, position=(0.0, 0.0, CAM_Z), depth_noise_std=0.002,
+                              normal_method=normal_method))
+    full = cam.capture(sim, scene, np.random.default_rng(0))
+    bare = cam.capture(sim, scene, np.random.default_rng(0), normals=False)
+    assert bare.normals.shape == (0, 3) and np.array_equal(bare.points, full.points)
+    idx = np.random.default_rng(1).choice(len(full.points), 300, replace=False)
+    tilt = np.degrees(np.arccos(np.clip(full.normals[idx, 2], -1, 1)))
+    assert tilt.max() > 5  # depth noise tilts the normals: the comparison below is not of constants
+    np.testing.assert_allclose(cam.normals_at(bare, idx), full.normals[idx], atol=1e-5)
+    with pytest.raises(ValueError, match="captures"):
+        _camera().normals_at(Camera(CameraConfig(width=80, height=60)).capture(sim, scene, normals=False), idx)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from dataset.annotate import annotate_scene, farthest_point_indices
+from dataset.annotate import annotate_scene
 from dataset.config import GenerationConfig
 from dataset.generate import generate, main as generate_main
 from dataset.stats import compute_stats, format_table, plot_stats
@@ -84,17 +84,6 @@ def test_scene_seeds_and_shards_are_fixed_by_config():
     assert GenerationConfig.from_dict(config.to_dict()) == config
     with pytest.raises(ValueError):
         generate("unused", config, workers=0)
-
-
-def test_farthest_point_indices_cover_the_cloud():
-    rng = np.random.default_rng(0)
-    cloud = np.concatenate([rng.normal(0, 0.01, (5000, 3)), rng.normal(1, 0.01, (50, 3))])
-    idx = farthest_point_indices(cloud, 20, np.random.default_rng(1))
-    assert len(np.unique(idx)) == 20 and (idx >= 5000).sum() >= 5  # the small far cluster is not ignored
-    assert np.array_equal(idx, farthest_point_indices(cloud, 20, np.random.default_rng(1)))
-    assert len(farthest_point_indices(cloud[:10], 16, rng)) == 16  # padded
-    with pytest.raises(ValueError):
-        farthest_point_indices(np.zeros((0, 3)), 4, rng)
 
 
 # --------------------------------------------------------------------------- storage (synthetic records)

@@ -8,7 +8,8 @@ the simulator has no EGL. A closed or stale simulator is refused with an error, 
 OpenGL depth buffer is converted to metric z-depth, sensor effects (Gaussian z-noise, dropouts)
 are drawn from the caller's generator, and every valid pixel is back-projected with the OpenCV
 pinhole model. Normals come from Open3D's KNN estimate (or the faster image-window PCA in
-``normals.py``), flipped to face the camera (outward).
+``normals.py``), flipped to face the camera (outward); a caller that needs them at a few points only (the
+dataset) captures with ``normals=False`` and asks ``normals_at`` for those.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import pybullet as pb
 
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.camera.frame import BACKGROUND, CameraFrame
-from parcelpick_env.camera.normals import open3d_normals, organized_normals
+from parcelpick_env.camera.normals import knn_normals_at, open3d_normals, organized_normals
 from parcelpick_env.scene.scene import Scene
 from parcelpick_env.sim.simulator import Simulator
 
@@ -98,8 +99,13 @@ class Camera:
         seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
         return rgb, depth_buf, seg
 
-    def capture(self, sim: Simulator, scene: Scene, rng: np.random.Generator | None = None) -> CameraFrame:
-        """Render ``sim`` now; segmentation labels are ``scene``'s object ids (``BACKGROUND`` elsewhere)."""
+    def capture(self, sim: Simulator, scene: Scene, rng: np.random.Generator | None = None,
+                normals: bool = True) -> CameraFrame:
+        """Render ``sim`` now; segmentation labels are ``scene``'s object ids (``BACKGROUND`` elsewhere).
+
+        ``normals=False`` leaves ``frame.normals`` empty, (0, 3), for a caller that needs them at a few of
+        the points only: ``normals_at`` then gives exactly those, for a fraction of the cost.
+        """
         cfg = self.config
         rgb, depth_buf, seg_bodies = self._render(sim)
         near, far = cfg.near, cfg.far
@@ -123,19 +129,48 @@ class Camera:
         depth = np.where(valid, depth, 0.0).astype(np.float32)
 
         rows, cols = np.nonzero(valid)
-        cam_pts = self._rays[rows, cols] * depth[rows, cols, None].astype(np.float64)
-        R, t = self.extrinsics[:3, :3], self.extrinsics[:3, 3]
-        points = cam_pts @ R.T + t
-        if cfg.normal_method == "organized":
-            image = np.zeros(depth.shape + (3,))
-            image[rows, cols] = points
-            normals = organized_normals(image, valid, cfg.normal_knn, self.position)
-        else:
-            normals = open3d_normals(points, cfg.normal_knn, self.position)
+        points = self._back_project(depth, rows, cols)
+        cloud_normals = self._normals(points, depth, rows, cols, None) if normals else np.zeros((0, 3))
         return CameraFrame(
             rgb=np.ascontiguousarray(rgb), depth=depth, segmentation=segmentation.astype(np.int32),
             intrinsics=self.intrinsics.copy(), extrinsics=self.extrinsics.copy(),
-            points=points.astype(np.float32), normals=normals.astype(np.float32),
+            points=points.astype(np.float32), normals=cloud_normals.astype(np.float32),
             point_object_ids=segmentation[rows, cols].astype(np.int32),
             point_pixels=np.stack([rows, cols], axis=1).astype(np.int32),
         )
+
+    def normals_at(self, frame: CameraFrame, indices: np.ndarray) -> np.ndarray:
+        """(M, 3) float32: the normals ``capture`` gives ``frame.points[indices]``, estimated only there.
+
+        ``frame`` must come from this camera's ``capture``: its float64 cloud is rebuilt from the stored
+        depth and pixels (bit for bit what ``capture`` estimated on), so the normals agree with
+        ``capture``'s to rounding. The organised estimator filters the whole image either way (it is cheap).
+        """
+        if frame.depth.shape != (self.config.height, self.config.width):
+            raise ValueError(f"frame is {frame.width}x{frame.height}, this camera captures "
+                             f"{self.config.width}x{self.config.height}")
+        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        rows, cols = frame.point_pixels[:, 0], frame.point_pixels[:, 1]
+        points = self._back_project(frame.depth, rows, cols)
+        return self._normals(points, frame.depth, rows, cols, indices).astype(np.float32)
+
+    def _back_project(self, depth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """World points (float64) of the pixels ``(rows, cols)`` of a metric z-depth image."""
+        cam_pts = self._rays[rows, cols] * depth[rows, cols, None].astype(np.float64)
+        # a C-contiguous R^T: numpy's matmul takes its slow strided loop for a transposed view
+        return cam_pts @ np.ascontiguousarray(self.extrinsics[:3, :3].T) + self.extrinsics[:3, 3]
+
+    def _normals(self, points: np.ndarray, depth: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                 at: np.ndarray | None) -> np.ndarray:
+        """Normals of ``points`` (the valid pixels ``rows, cols``), all of them or only ``points[at]``."""
+        cfg = self.config
+        if cfg.normal_method == "organized":
+            image = np.zeros(depth.shape + (3,))
+            image[rows, cols] = points
+            valid = np.zeros(depth.shape, bool)
+            valid[rows, cols] = True
+            normals = organized_normals(image, valid, cfg.normal_knn, self.position)
+            return normals if at is None else normals[at]
+        if at is None:
+            return open3d_normals(points, cfg.normal_knn, self.position)
+        return knn_normals_at(points, at, cfg.normal_knn, self.position)

@@ -17,7 +17,8 @@ class CameraFrame:
     in the OpenCV convention (x right, y down, z forward). ``depth`` is metric z-depth with 0 where
     the sensor returned nothing. ``segmentation`` holds scene object ids, ``BACKGROUND`` elsewhere.
     ``points``/``normals``/``point_object_ids``/``point_pixels`` describe every valid depth pixel;
-    normals are Open3D estimates oriented towards the camera (outward from the surface).
+    normals are Open3D estimates oriented towards the camera (outward from the surface), or empty (0, 3)
+    when captured with ``normals=False`` (``Camera.normals_at`` then gives them where needed).
     """
 
     rgb: np.ndarray  # (H, W, 3) uint8

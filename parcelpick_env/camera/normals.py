@@ -4,6 +4,7 @@ Two estimators, both local PCA (the normal is the covariance's smallest eigenvec
 
 - ``open3d``: Open3D's KNN estimate on the unorganised cloud (the reference; about a second per
   megapixel-ish cloud on a desktop core, several seconds at 640x480 on a loaded 2-core machine).
+  ``knn_normals_at`` gives the same estimate at a few points only (the dataset labels 4,096 of 77k).
 - ``organized``: the same PCA over each pixel's image window (``window x window`` pixels, about
   ``knn`` neighbours), skipping neighbours across a depth jump so normals do not bleed between a
   parcel and what lies under it. For a single overhead view, image neighbours are 3-D neighbours,
@@ -16,6 +17,7 @@ import math
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 
 def orient_towards(normals: np.ndarray, points: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
@@ -32,6 +34,28 @@ def open3d_normals(points: np.ndarray, knn: int, viewpoint: np.ndarray) -> np.nd
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(knn, len(points))))
     return orient_towards(np.asarray(pcd.normals), points, viewpoint)
+
+
+def knn_normals_at(points: np.ndarray, at: np.ndarray, knn: int, viewpoint: np.ndarray) -> np.ndarray:
+    """``open3d_normals(points, knn, viewpoint)[at]``, computed only at ``points[at]`` (M, 3).
+
+    The same estimate as Open3D's (PCA of each point's ``knn`` nearest neighbours in the whole cloud, itself
+    included, then faced to ``viewpoint``); it agrees with it to rounding (and nearest-neighbour ties), at
+    the cost of M neighbourhoods instead of N: a dataset that keeps 4,096 of 50,000 points pays a tenth.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    at = np.asarray(at, dtype=np.int64).reshape(-1)
+    if len(at) and (at.min() < 0 or at.max() >= len(points)):
+        raise ValueError(f"at must index the {len(points)} points, got indices in [{at.min()}, {at.max()}]")
+    if len(points) < 3 or len(at) == 0:
+        return np.tile([0.0, 0.0, 1.0], (len(at), 1))
+    # an unbalanced tree builds in half the time and answers the same exact k-NN queries
+    _, nbr = cKDTree(points, balanced_tree=False).query(points[at], k=min(knn, len(points)))
+    patches = points[nbr.reshape(len(at), -1)]  # (M, k, 3)
+    centred = patches - patches.mean(axis=1, keepdims=True)
+    cov = np.einsum("mki,mkj->mij", centred, centred)
+    normals = np.linalg.eigh(cov)[1][:, :, 0]  # eigh sorts eigenvalues ascending
+    return orient_towards(np.ascontiguousarray(normals), points[at], viewpoint)
 
 
 def smallest_eigenvectors(xx, xy, xz, yy, yz, zz) -> np.ndarray:

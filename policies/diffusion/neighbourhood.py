@@ -13,6 +13,7 @@ from typing import Any, Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
+from parcelpick_env.farthest_points import farthest_point_indices
 from policies.diffusion.config import DiffusionConfig
 from policies.surface_segments import surface_levers
 
@@ -47,20 +48,10 @@ def grid_sample(points: np.ndarray, count: int) -> np.ndarray:
     return order[chosen]
 
 
-def farthest_point_sample(points: np.ndarray, count: int) -> np.ndarray:
-    """Indices of Open3D's farthest-point sample (start index 0)."""
-    import open3d as o3d
-
-    if count >= len(points):
-        return np.arange(len(points))
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
-    picked = np.asarray(cloud.farthest_point_down_sample(count).points)
-    _, idx = cKDTree(points).query(picked, k=1)  # Open3D returns points, not indices
-    return idx.astype(np.int64)
-
-
 def sample_indices(points: np.ndarray, count: int, sampler: str) -> np.ndarray:
-    return farthest_point_sample(points, count) if sampler == "fps" else grid_sample(points, count)
+    """``count`` centre indices: farthest-point sampling from point 0 (``parcelpick_env.farthest_points``) or
+    the voxel ``grid_sample``."""
+    return farthest_point_indices(points, count) if sampler == "fps" else grid_sample(points, count)
 
 
 def ball_group(tree: cKDTree, n: int, centres: np.ndarray, radii: tuple[float, ...], nsample: int,
