@@ -1,5 +1,6 @@
 """Diffusion-Suction speed and memory on CPU: input precompute (neighbourhoods, segment levers), encoder (once),
-decoder x DDIM steps, end-to-end policy.predict, and a training step. Prints a markdown table.
+decoder x DDIM steps (and the diffusers scheduler's share alone), end-to-end policy.predict, and a training step.
+Prints a markdown table.
 
     .venv/bin/python benchmarks/bench_diffusion.py [--threads 2] [--sizes 4096 8192 16384] [--repeats 3]
 """
@@ -44,6 +45,13 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def scheduler_only(model, x: torch.Tensor) -> None:
+    """The DDIM bookkeeping of one sampling run without the decoder (its output replaced by x itself)."""
+    steps = model.config.inference_steps
+    for t in model.scheduler.timesteps(steps).tolist():
+        x, _ = model.scheduler.step(x, t, x, steps)
+
+
 def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decode_points: int) -> dict:
     scene = synthetic_scene(np.random.default_rng(0), n)
     model = build_model(cfg).eval()
@@ -56,6 +64,8 @@ def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decod
         t_dec = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0)), repeats)
         sub = torch.arange(0, n, max(1, n // decode_points))[:decode_points].unsqueeze(0)
         t_sub = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0), point_index=sub), repeats)
+        x = torch.randn((1, cfg.num_channels, n), generator=torch.Generator().manual_seed(0))
+        t_sched = timed(lambda: scheduler_only(model, x), repeats)
     obs = {"points": scene["points"], "normals": scene["normals"]}
     full = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=0)
     fast = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=decode_points)
@@ -63,6 +73,7 @@ def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decod
     t_fast = timed(lambda: fast.predict(obs), repeats)
     return {"config": name, "N": n, "precompute": t_nb, "encoder": t_enc,
             f"decoder x{cfg.inference_steps} (N)": t_dec, f"decoder x{cfg.inference_steps} ({decode_points} pts)": t_sub,
+            "of which scheduler (N)": t_sched,
             "predict (decode N)": t_pol, f"predict (decode {decode_points})": t_fast, "peak RSS MB": peak_mb()}
 
 

@@ -5,6 +5,7 @@ Everything runs at 512 points with narrow layers and one torch thread (the CI bo
 
 from __future__ import annotations
 
+import diffusers
 import numpy as np
 import pytest
 import torch
@@ -12,14 +13,14 @@ from scipy.spatial import cKDTree
 from torch.utils.data import default_collate
 
 from policies.base import Candidates
-from policies.diffusion.checkpoint import load_checkpoint, load_model, save_checkpoint
-from policies.diffusion.config import DiffusionConfig
+from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, load_model, save_checkpoint
+from policies.diffusion.config import LEGACY_SAMPLER, TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
 from policies.diffusion.model import LEVER_UNIT, build_model
 from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods, grid_sample
 from policies.diffusion.pointnet2 import fold_batchnorm
 from policies.diffusion.policy import DiffusionSuctionPolicy
-from policies.diffusion.scheduler import DDIMScheduler, make_betas
+from policies.diffusion.scheduler import DiffusionSchedule
 from policies.diffusion.synthetic import synthetic_scene
 from policies.postprocess import nms_indices, select_candidates
 
@@ -51,51 +52,159 @@ def obs_from(seed: int = 3, n: int = N) -> dict[str, np.ndarray]:
 
 
 # -- scheduler ----------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("schedule", ["linear", "cosine"])
-def test_alphas_cumprod_monotone_in_unit_interval(schedule):
-    abar = DDIMScheduler(1000, schedule).alphas_cumprod
+def schedule(prediction="eps", spacing="trailing", eta=0.0, beta_schedule="linear") -> DiffusionSchedule:
+    return DiffusionSchedule(1000, beta_schedule, 1e-4, 0.02, prediction, spacing, eta)
+
+
+def reference_ddim(prediction, spacing, beta_schedule, steps) -> diffusers.DDIMScheduler:
+    """diffusers' own DDIM as the project means it: its names for our settings, no clipping of x0."""
+    ref = diffusers.DDIMScheduler(num_train_timesteps=1000, beta_start=1e-4, beta_end=0.02,
+                                  beta_schedule={"linear": "linear", "cosine": "squaredcos_cap_v2"}[beta_schedule],
+                                  prediction_type={"eps": "epsilon", "x0": "sample"}[prediction],
+                                  timestep_spacing=spacing, clip_sample=False)
+    ref.set_timesteps(steps)
+    return ref
+
+
+def fake_network(x: torch.Tensor, t: int) -> torch.Tensor:
+    """A fixed stand-in for the decoder: depends on x and t, exceeds [-1, 1] (so any clipping would show)."""
+    return 1.5 * torch.tanh(x) * (1.0 - t / 2000.0) + 0.3
+
+
+@pytest.mark.parametrize("beta_schedule", ["linear", "cosine"])
+def test_alphas_cumprod_monotone_in_unit_interval(beta_schedule):
+    abar = schedule(beta_schedule=beta_schedule).alphas_cumprod
     assert abar.shape == (1000,)
     assert torch.all(abar[1:] < abar[:-1])
     assert 0.0 < float(abar[-1]) < 0.01 and 0.99 < float(abar[0]) < 1.0
 
 
-def test_linear_betas_and_timesteps_match_diffusers():
-    betas = make_betas(1000, "linear")
-    assert float(betas[0]) == pytest.approx(1e-4) and float(betas[-1]) == pytest.approx(0.02)
-    ts = DDIMScheduler(1000).timesteps(20)
-    assert ts.tolist() == list(range(950, -1, -50))
-    with pytest.raises(ValueError):
-        make_betas(10, "quadratic")
-    with pytest.raises(ValueError):
-        DDIMScheduler(100).timesteps(101)
+@pytest.mark.parametrize("spacing", TIMESTEP_SPACINGS)
+@pytest.mark.parametrize("steps", [1, 3, 5, 7, 20])
+def test_timesteps_match_diffusers(spacing, steps):
+    ours = schedule(spacing=spacing).timesteps(steps)
+    assert torch.equal(ours, reference_ddim("eps", spacing, "linear", steps).timesteps)
+    assert ours.dtype == torch.long and torch.all(ours[1:] < ours[:-1])
 
 
-def test_add_noise_formula():
-    s = DDIMScheduler(1000)
-    x0, eps = torch.full((2, 4, 3), 0.5), torch.full((2, 4, 3), -1.0)
-    t = torch.tensor([0, 999])
-    xt = s.add_noise(x0, eps, t)
-    abar = s.alphas_cumprod[t].float()
-    expected = abar.sqrt().reshape(2, 1, 1) * 0.5 - (1 - abar).sqrt().reshape(2, 1, 1)
-    assert torch.allclose(xt, expected, atol=1e-6)
-    assert torch.allclose(xt[0], x0[0], atol=0.02)  # t = 0: almost clean
-    assert float(xt[1].mean()) < -0.9  # t = T-1: almost pure noise
+def test_trailing_starts_at_the_last_training_step_and_leading_does_not():
+    """Issue #14: 5 'leading' steps start at t = 800 and end at 0; 5 'trailing' ones run 999 .. 199."""
+    assert schedule(spacing="leading").timesteps(5).tolist()[::4] == [800, 0]
+    assert schedule(spacing="trailing").timesteps(5).tolist()[::4] == [999, 199]
+    assert DiffusionConfig().timestep_spacing == DiffusionConfig.cpu().timestep_spacing == "leading"  # measured
+    with pytest.raises(ValueError, match="inference_steps"):
+        schedule().timesteps(1001)
 
 
-@pytest.mark.parametrize("prediction", ["eps", "x0"])
-@pytest.mark.parametrize("schedule", ["linear", "cosine"])
-def test_ddim_with_perfect_predictor_recovers_x0(prediction, schedule):
-    s = DDIMScheduler(1000, schedule)
+@pytest.mark.parametrize("beta_schedule", ["linear", "cosine"])
+def test_add_noise_matches_diffusers(beta_schedule):
     g = torch.Generator().manual_seed(0)
-    x0 = torch.rand((2, 4, 64), generator=g, dtype=torch.float64) - 0.5
-    x = torch.randn(x0.shape, generator=g, dtype=torch.float64)
-    ts = s.timesteps(10)
-    for t, prev in zip(ts.tolist(), s.prev_timesteps(ts).tolist()):
+    x0, noise = torch.rand((3, 4, 50), generator=g) - 0.5, torch.randn((3, 4, 50), generator=g)
+    t = torch.tensor([0, 517, 999])
+    ref = reference_ddim("eps", "trailing", beta_schedule, 5)
+    ours = schedule(beta_schedule=beta_schedule)
+    assert torch.equal(ours.alphas_cumprod, ref.alphas_cumprod)
+    assert torch.equal(ours.add_noise(x0, noise, t), ref.add_noise(x0, noise, t))
+    assert torch.allclose(ours.add_noise(x0, noise, 0), x0, atol=0.05)  # t = 0: almost clean (noise std 0.01)
+    assert (ours.add_noise(x0, noise, 999) - noise).abs().max() < 0.01  # t = T-1: almost pure noise
+
+
+@pytest.mark.parametrize("eta", [0.0, 0.7])
+@pytest.mark.parametrize("spacing", TIMESTEP_SPACINGS)
+@pytest.mark.parametrize("prediction", ["eps", "x0"])
+@pytest.mark.parametrize("steps", [5, 6])
+def test_ddim_trajectory_matches_diffusers(steps, prediction, spacing, eta):
+    """A multi-step run with the same network through our wrapper and diffusers' DDIMScheduler called directly."""
+    ours, ref = schedule(prediction, spacing, eta), reference_ddim(prediction, spacing, "linear", steps)
+    start = torch.randn((2, 4, 40), generator=torch.Generator().manual_seed(3))
+
+    def run(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+        g, x, x0 = torch.Generator().manual_seed(seed), start, start
+        for t in ours.timesteps(steps).tolist():
+            x, x0 = ours.step(fake_network(x, t), t, x, steps, g)
+        return x, x0
+
+    g, expected = torch.Generator().manual_seed(11), start
+    for t in ref.timesteps.tolist():
+        expected = ref.step(fake_network(expected, t), t, expected, eta=eta, generator=g).prev_sample
+    x, x0 = run(11)
+    assert torch.equal(x, expected)
+    if ours.timesteps(steps)[-1] < 1000 // steps:  # the last step lands on alpha-bar = 1 (6 'trailing' steps stop
+        assert torch.equal(x, x0)  # at t = 0, diffusers #12633): there x_prev is the x0 prediction
+    assert torch.equal(run(11)[0], x)  # deterministic under the generator
+    assert torch.equal(run(12)[0], x) == (eta == 0.0)  # eta > 0 draws noise from the generator, eta = 0 none
+
+
+@pytest.mark.parametrize("spacing", ["leading", "trailing"])
+@pytest.mark.parametrize("prediction", ["eps", "x0"])
+@pytest.mark.parametrize("beta_schedule", ["linear", "cosine"])
+def test_ddim_with_perfect_predictor_recovers_x0(prediction, beta_schedule, spacing):
+    """Known answer, independent of diffusers: a network that predicts the truth is denoised to x0 (float32)."""
+    s = schedule(prediction, spacing, eta=0.5, beta_schedule=beta_schedule)
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand((2, 4, 64), generator=g) - 0.5
+    x = torch.randn(x0.shape, generator=g)
+    for t in s.timesteps(10).tolist():
         abar = s.alphas_cumprod[t]
         out = (x - abar.sqrt() * x0) / (1 - abar).sqrt() if prediction == "eps" else x0
-        x, x0_pred = s.step(out, t, prev, x, prediction)
-        assert torch.allclose(x0_pred, x0, atol=1e-9)
-    assert torch.allclose(x, x0, atol=1e-9)
+        x, x0_pred = s.step(out, t, x, 10, g)
+        assert torch.allclose(x0_pred, x0, atol=2e-6 / float(abar.sqrt()))  # eps -> x0 divides float32 x by sqrt(abar)
+    assert torch.allclose(x, x0, atol=1e-5)
+
+
+def test_schedule_and_config_refuse_bad_sampler_settings():
+    for bad in ({"spacing": "uniform"}, {"eta": -0.1}, {"eta": 1.5}, {"prediction": "v"}, {"beta_schedule": "sqrt"}):
+        with pytest.raises(ValueError):
+            schedule(**bad)
+    for bad in ({"timestep_spacing": "uniform"}, {"eta": 2.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            DiffusionConfig.tiny(**bad)
+
+
+# Recorded from the hand-written DDIM this wrapper replaced (git 9d5a8ff: HEAD's model.py and scheduler.py run as
+# temp modules on the shipped checkpoint), with SHIPPED_INPUT below. Recorded rather than recomputed from git, because
+# once this change is committed HEAD holds the new code and the comparison would check the wrapper against itself.
+# Float32 alpha-bars (diffusers) against float64 ones (the old code) move them by < 1e-6.
+OLD_SHIPPED_SCORES = [
+    [0.0000000, 0.1992435, 0.7456611, 0.0930212], [0.0000000, 0.2312676, 0.0000000, 0.1213666],
+    [0.0000000, 0.2209377, 0.0000000, 0.0000000], [0.9534010, 0.1787475, 0.6757540, 0.9433643],
+    [0.6535531, 0.1906827, 1.0000000, 0.6828915], [0.0000000, 0.0781693, 1.0000000, 0.2279382],
+    [0.0000000, 0.1472361, 0.9427266, 0.0000000], [0.5790163, 0.5027599, 1.0000000, 0.2576742],
+    [0.9482070, 0.3193587, 0.7092870, 0.8393329], [0.0000000, 0.2239229, 0.7329187, 0.0000000],
+    [0.3037449, 0.1812993, 0.1594225, 0.2759139], [0.2827970, 0.2759901, 0.4860382, 0.8968571],
+    [0.0000000, 0.2513975, 0.4393915, 0.0000000], [1.0000000, 0.3652182, 1.0000000, 1.0000000],
+    [1.0000000, 0.7731663, 1.0000000, 1.0000000], [0.7452097, 0.2190670, 0.8037347, 0.8421026]]
+OLD_SHIPPED_STEP_MEANS = [0.5340111, 0.5326441, 0.5262792, 0.4973747, 0.4564886, 0.4484342]  # noise first
+
+
+def test_shipped_checkpoint_predicts_as_before_the_diffusers_scheduler():
+    """SHIPPED_INPUT: 16 points of seed-14 normal features, initial noise from seed 0, the checkpoint's 5 steps.
+
+    Features go straight to the decoder, so the check covers the scheduler and decoder, not the encoder inputs."""
+    model, _ = load_model(DEFAULT_CHECKPOINT)
+    assert (model.config.timestep_spacing, model.config.eta) == ("leading", 0.0)  # stored before the fields existed
+    features = torch.randn((1, 16, model.decoder.cond[0].in_channels), generator=torch.Generator().manual_seed(14))
+    with torch.inference_mode():
+        scores, maps = model.sample(features, generator=torch.Generator().manual_seed(0), return_trajectory=True)
+    assert torch.allclose(scores[0], torch.tensor(OLD_SHIPPED_SCORES), atol=2e-6)
+    assert torch.allclose(maps.mean(dim=(1, 2, 3)), torch.tensor(OLD_SHIPPED_STEP_MEANS), atol=2e-6)
+    trailing, _ = load_model(DEFAULT_CHECKPOINT, timestep_spacing="trailing")  # a sampler setting, overridable
+    with torch.inference_mode():
+        other = trailing.sample(features, generator=torch.Generator().manual_seed(0))
+    assert (other - scores).abs().max() > 0.01
+
+
+def test_checkpoint_without_sampler_fields_loads_as_leading_eta0(tmp_path):
+    cfg = DiffusionConfig.tiny(timestep_spacing="trailing", eta=0.3)
+    path = save_checkpoint(tmp_path / "m.pt", build_model(cfg))
+    assert load_checkpoint(path)["config"] == cfg  # stored and read back
+    old = torch.load(path, weights_only=True)
+    for key in LEGACY_SAMPLER:
+        del old["config"][key]
+    torch.save(old, tmp_path / "old.pt")
+    model, payload = load_model(tmp_path / "old.pt")
+    assert (payload["config"].timestep_spacing, payload["config"].eta) == ("leading", 0.0)
+    assert model.scheduler.timesteps(5)[0] == 800
 
 
 # -- neighbourhoods -----------------------------------------------------------------------------------------------
@@ -360,3 +469,11 @@ def test_train_cli_runs_and_resumes_deterministically(tmp_path):
         assert torch.equal(v, b["model"][k]), k
     policy = DiffusionSuctionPolicy(checkpoint=tmp_path / "a" / "best.pt")
     assert len(policy.predict(obs_from(5, 256), top_k=3)) > 0
+
+
+def test_train_cli_sets_the_ddim_sampler():
+    from policies.diffusion.train import make_config, parse_args
+
+    cfg = make_config(parse_args(["--synthetic", "4", "--timestep-spacing", "trailing", "--eta", "0.2"]))
+    assert (cfg.timestep_spacing, cfg.eta) == ("trailing", 0.2)
+    assert make_config(parse_args(["--synthetic", "4"])).timestep_spacing == DiffusionConfig().timestep_spacing

@@ -45,14 +45,14 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
 def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu",
                expected: DiffusionConfig | None = None, **overrides: Any) -> tuple[DiffusionSuction, dict[str, Any]]:
     """Model (eval mode) from a checkpoint. ``expected`` must match the stored config (ValueError listing the fields
-    that differ); ``overrides`` change inference-only fields such as ``decode_points``."""
+    that differ); ``overrides`` change inference-only fields such as ``decode_points`` or the DDIM sampler's."""
     payload = load_checkpoint(path, map_location)
     config: DiffusionConfig = payload["config"]
     if expected is not None:
         diff = {k: (v, getattr(config, k)) for k, v in expected.to_dict().items() if getattr(config, k) != v}
         if diff:
             raise ValueError(f"{path}: config mismatch (expected, stored): {diff}")
-    inference_only = {"decode_points", "inference_steps"}
+    inference_only = {"decode_points", "inference_steps", "timestep_spacing", "eta"}
     bad = set(overrides) - inference_only
     if bad:
         raise ValueError(f"only {sorted(inference_only)} can be overridden at load time, not {sorted(bad)}")

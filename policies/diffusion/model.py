@@ -10,7 +10,7 @@ from torch import nn
 from policies.diffusion.config import DiffusionConfig
 from policies.diffusion.pcdb import PCDB
 from policies.diffusion.pointnet2 import build_encoder
-from policies.diffusion.scheduler import DDIMScheduler
+from policies.diffusion.scheduler import DiffusionSchedule
 from policies.surface_segments import LEVER_CHANNELS
 
 LEVER_UNIT = 0.1  # metres: lever arms enter the decoder in decimetres, O(1) like the other features
@@ -24,7 +24,7 @@ class DiffusionSuction(nn.Module):
         cond_dim = self.encoder.out_channels + (LEVER_CHANNELS if config.segment_levers else 0)
         self.decoder = PCDB(cond_dim, config.num_channels, config.decoder_dim, config.head_hidden,
                             config.attention_ratio)
-        self.scheduler = DDIMScheduler(config.train_steps, config.schedule, config.beta_start, config.beta_end)
+        self.scheduler = DiffusionSchedule.from_config(config)
 
     # -- score <-> diffusion space -------------------------------------------------------------------------------
     def to_signal(self, scores: torch.Tensor) -> torch.Tensor:
@@ -51,13 +51,15 @@ class DiffusionSuction(nn.Module):
         x = torch.randn((b, self.config.num_channels, n), generator=generator, device=cond.device, dtype=cond.dtype)
         if trajectory is not None:
             trajectory.append(self.to_scores(x).transpose(1, 2))
-        timesteps = self.scheduler.timesteps(steps)
-        for t, prev in zip(timesteps.tolist(), self.scheduler.prev_timesteps(timesteps).tolist()):
+        x0 = x
+        for t in self.scheduler.timesteps(steps).tolist():
             out = self.decoder(x, torch.full((1,), t, device=cond.device, dtype=torch.long), cond)
-            x, _ = self.scheduler.step(out, t, prev, x, self.config.prediction)
+            x, x0 = self.scheduler.step(out, t, x, steps, generator)
             if trajectory is not None:
                 trajectory.append(self.to_scores(x).transpose(1, 2))
-        return x  # after the last step (prev = -1) this is the x0 prediction
+        if trajectory is not None:  # the run's answer; x_prev already is, unless diffusers stops at t = 0 (see step)
+            trajectory[-1] = self.to_scores(x0).transpose(1, 2)
+        return x0
 
     def sample(self, features: torch.Tensor, steps: int | None = None, generator: torch.Generator | None = None,
                return_trajectory: bool = False, point_index: torch.Tensor | None = None

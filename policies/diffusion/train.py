@@ -26,8 +26,9 @@ from parcelpick_env.cli import (
     check_output_path,
     run_cli,
 )
+from parcelpick_env.suction.quality import LABEL_SETS
 from policies.diffusion.checkpoint import load_checkpoint, save_checkpoint
-from policies.diffusion.config import DiffusionConfig
+from policies.diffusion.config import TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
 from policies.provenance import command_line, training_provenance
 from policies.diffusion.model import DiffusionSuction, build_model
@@ -64,6 +65,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     src.add_argument("--data", type=Path, help="dataset root for dataset.torch_dataset.ParcelSuctionDataset")
     src.add_argument("--synthetic", type=int, metavar="SCENES", help="train on N synthetic box scenes (smoke test)")
     p.add_argument("--val-data", type=Path, help="validation root (default: hold out --val-fraction of --data)")
+    p.add_argument("--label-set", choices=list(LABEL_SETS), default=None,
+                   help="which stored label set to learn (docs/labels.md; default: the dataset's main one)")
     p.add_argument("--val-fraction", type=float, default=0.05)
     p.add_argument("--val-scenes", type=int, default=16, help="scenes used per validation")
     p.add_argument("--out", type=Path, default=Path("runs/diffusion"))
@@ -78,6 +81,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--inference-steps", type=int, help="DDIM steps (default: 20 in the paper preset, 5 in cpu)")
     p.add_argument("--schedule", choices=["linear", "cosine"])
     p.add_argument("--prediction", choices=["eps", "x0"])
+    p.add_argument("--timestep-spacing", choices=list(TIMESTEP_SPACINGS),
+                   help="DDIM timesteps (default 'leading', see DiffusionConfig)")
+    p.add_argument("--eta", type=float, help="DDIM noise, 0 (default, deterministic) to 1")
     p.add_argument("--map-loss-weight", type=float)
     p.add_argument("--positive-weight", type=float, help="loss weight 1 + w * label per point and channel")
     p.add_argument("--epochs", type=int, default=1)
@@ -99,7 +105,8 @@ def make_config(args: argparse.Namespace) -> DiffusionConfig:
     overrides = {k: v for k, v in {
         "num_points": args.num_points, "encoder": args.encoder, "width": args.width,
         "train_steps": args.diffusion_steps, "inference_steps": args.inference_steps, "schedule": args.schedule,
-        "prediction": args.prediction, "map_loss_weight": args.map_loss_weight,
+        "prediction": args.prediction, "timestep_spacing": args.timestep_spacing, "eta": args.eta,
+        "map_loss_weight": args.map_loss_weight,
         "positive_weight": args.positive_weight}.items() if v is not None}
     if args.no_normals:
         overrides["use_normals"] = False
@@ -126,11 +133,15 @@ def make_datasets(args: argparse.Namespace, config: DiffusionConfig) -> tuple[Da
         raise SystemExit(f"error: dataset.torch_dataset.ParcelSuctionDataset is not importable ({e})") from e
     if not args.data.exists():
         raise SystemExit(f"error: --data {args.data} does not exist")
-    train = ParcelSuctionDataset(args.data, num_points=config.num_points, augment=True, transform=transform,
-                                 seed=args.seed)
-    if args.val_data is not None:
-        val = ParcelSuctionDataset(args.val_data, num_points=config.num_points, augment=False, transform=transform,
-                                   seed=args.seed)
+    try:
+        train = ParcelSuctionDataset(args.data, num_points=config.num_points, augment=True, transform=transform,
+                                     seed=args.seed, label_set=args.label_set)
+        val = None if args.val_data is None else ParcelSuctionDataset(
+            args.val_data, num_points=config.num_points, augment=False, transform=transform, seed=args.seed,
+            label_set=args.label_set)
+    except ValueError as e:  # a label set the dataset does not hold
+        raise SystemExit(f"error: {e}") from e
+    if val is not None:
         return train, val
     n = len(train)
     if n < 2:
@@ -138,7 +149,7 @@ def make_datasets(args: argparse.Namespace, config: DiffusionConfig) -> tuple[Da
     perm = np.random.default_rng(args.seed).permutation(n)
     n_val = min(n - 1, max(1, int(round(n * args.val_fraction))))
     val_base = ParcelSuctionDataset(args.data, num_points=config.num_points, augment=False, transform=transform,
-                                    seed=args.seed)
+                                    seed=args.seed, label_set=args.label_set)
     return Subset(train, perm[n_val:].tolist()), Subset(val_base, perm[:n_val].tolist())
 
 
