@@ -6,6 +6,7 @@ of the held parcel (the lift starts from rest, so the first steps carry gravity 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -305,5 +306,85 @@ def test_parcel_that_cannot_be_carried_on_is_set_back_down():
         assert lowered and min(lowered) < res.contact_point[2] + 0.01  # carried back down while held
         after, _ = env.sim.body_pose(res.body_id)
         assert np.linalg.norm(after - before) < 0.01  # and left where it was
+    finally:
+        env.close()
+
+
+def test_cup_loads_leave_out_supports_and_walls_only_while_the_parcel_bears_on_them():
+    """A slanted support pushes the parcel into a wall: while it bears, both are the (indeterminate) support
+    and neither loads the cup; a neighbour lying on top always does; off the support, the wall counts."""
+    from parcelpick_env.envs.grasp import cup_loads
+    from parcelpick_env.suction.cup import Contacts
+
+    support, wall, neighbour = 5, 0, 7
+    normals = np.array([[0.0, -0.34, 0.94], [0.0, 1.0, 0.0], [0.3, 0.0, -0.95]])
+    force = np.array([5.0, 1.8, 2.0])
+
+    def contacts(rows):
+        return Contacts(np.zeros((len(rows), 3)), normals[rows] * force[rows, None],
+                        np.array([support, wall, neighbour])[rows], normals[rows], force[rows])
+
+    exempt, walls = {support, wall, neighbour}, {wall}
+    resting = cup_loads(contacts([0, 1, 2]), exempt, walls)
+    assert list(resting.bodies) == [neighbour]
+    off = cup_loads(contacts([1, 2]), exempt, walls)  # the support is left behind: the wall's push is a load
+    assert sorted(off.bodies) == [wall, neighbour]
+    np.testing.assert_allclose(off.forces.sum(axis=0), normals[1] * 1.8 + normals[2] * 2.0)
+
+
+def test_carton_pressed_into_a_wall_is_lifted_off_it_with_its_own_load_only():
+    """A 1 kg carton slid down a 20 deg ramp against the far wall (the wall pushes it several newtons): the
+    lift first moves it wall_relief off the wall, and the ring loads are its own weight's, within 30% of the
+    hand values (the wall's 7 N, 5-8 cm below the lip, charged to the cup would add about 0.6 to friction and
+    0.8 to material)."""
+    th = math.radians(20.0)
+    ramp = PlacedBox((0.30, 0.30, 0.04), 1.0, tilt=-th,
+                     center=(0.0, 0.225 - 0.15 * math.cos(th), 0.025 + 0.15 * math.sin(th)))
+    env = make(BoxScene([ramp.resting_on_top((0.16, 0.16, 0.10), 1.0, friction=0.4)], fixtures=[ramp],
+                        settle_steps=720))
+    try:
+        env.reset(seed=0)
+        ps = env.scene.parcels[0]
+        touching = contact_forces(env.sim.client, ps.body_id, {env.arm.body})
+        bin_body = int(touching.bodies[np.argmin(np.abs(touching.normals[:, 2]))])
+        assert touching.normal_force[touching.bodies == bin_body].sum() > 3.0  # pressed into the wall
+        relief = env.executor._wall_relief(touching)
+        np.testing.assert_allclose(relief, [0.0, -env.config.grasp.wall_relief, 0.0], atol=1e-9)
+        res = top_pick(env)
+        assert res.outcome == "success", res.failure
+        R = np.asarray(pb.getMatrixFromQuaternion(ps.orientation.tolist())).reshape(3, 3)
+        axis = -R[:, 2]
+        # the COM lies 5 cm below the lip, along the cup axis; the carry's acceleration adds up to ~20%
+        hand = static_ratios(1.0, 0.05 * axis, axis, CupSpec().friction, rated_vacuum(CupSpec(), res.seal))
+        assert combined(res.peak_ratios, "friction") < 1.3 * hand["friction"], (res.peak_ratios, hand)
+        assert combined(res.peak_ratios, "material") < 1.3 * hand["material"], (res.peak_ratios, hand)
+    finally:
+        env.close()
+
+
+def test_turn_down_rotates_the_tool_about_the_lip_to_vertical_within_the_budget():
+    """A 45 deg side pick at carrying height is turned to a top-down tool: the tip stays put (to the IK's
+    tolerance), the axis ends straight down, and the held COM moves no faster than the carrying speed."""
+    from parcelpick_env.envs.grasp import _Pick
+
+    env = make(HEAVY)
+    try:
+        env.reset(seed=0)
+        ex, g = env.executor, env.config.grasp
+        axis = np.array([-math.sqrt(0.5), 0.0, -math.sqrt(0.5)])  # into a face whose normal is 45 deg off up
+        tip = np.array([-0.15, 0.0, 0.45])
+        q0 = env.arm.ik(tip, axis, seed=ex.ready_q)
+        assert q0 is not None
+        pick = _Pick(point=tip, normal=-axis, axis=axis, hover=tip, pre=tip, contact_axis=axis,
+                     com_in_tool=np.array([0.0, 0.0, 0.1]))
+        traj, why = ex._turn_down(q0, pick, a_max=1.0)
+        assert traj is not None, why
+        end_tip, end_axis = ex.kin.forward(traj.q[-1])[:2]
+        np.testing.assert_allclose(end_tip, tip, atol=2e-3)
+        np.testing.assert_allclose(end_axis, [0.0, 0.0, -1.0], atol=1e-2)
+        omega = max(float(np.linalg.norm(ex.kin.tool_motion(q, qd, qdd)[3]))
+                    for q, qd, qdd in zip(traj.q[::5], traj.qd[::5], traj.qdd[::5]))
+        assert omega * 0.1 <= g.carry_speed * 1.05
+        assert ex._turn_down(traj.q[-1], dataclasses.replace(pick, contact_axis=end_axis), 1.0) == (None, None)
     finally:
         env.close()

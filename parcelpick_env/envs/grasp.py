@@ -17,7 +17,9 @@ Each move returns a ``MoveReport``; the first that fails ends the attempt with a
   to the drop zone, timed so the predicted ring loads stay within ``carry_load_target``. Every step the
   physical wrench (Newton-Euler of the held parcel plus its real contacts, ``suction.cup``) is checked
   against Dex-Net 3.0's ring conditions: a sustained violation is ``dropped`` (condition named); a
-  held parcel pressing on a wall or another parcel is ``collision`` (that body named).
+  held parcel pressing on a wall or another parcel is ``collision`` (that body named). A parcel touching
+  a bin wall is first moved a few millimetres off it (``_wall_relief``); a tilted pick whose transport no
+  IK solves at its contact axis is turned down about the lip first (``_turn_down``).
 - ``release``: at the drop zone the parcel is released and leaves the scene (``success``).
 - ``retreat``: back to home (it never changes the outcome).
 """
@@ -41,12 +43,12 @@ from parcelpick_env.robot.timing import Trajectory, concatenate, hold_trajectory
 from parcelpick_env.scene.scene import ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 from parcelpick_env.suction.config import SuctionConfig
-from parcelpick_env.suction.cup import (CONDITIONS, HoldMonitor, ToolState, contact_forces, mesh_inertia,
+from parcelpick_env.suction.cup import (CONDITIONS, Contacts, HoldMonitor, ToolState, contact_forces, mesh_inertia,
                                         suction_ring_ratios)
 from parcelpick_env.suction.scorer import SuctionScorer
 
 __all__ = ["OUTCOMES", "CONDITIONS", "MOVES", "Failure", "MoveReport", "PickResult", "PickExecutor",
-           "suction_ring_ratios"]
+           "cup_loads", "suction_ring_ratios"]
 
 OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", "dropped", "collision",
                              "invalid_action")
@@ -54,6 +56,17 @@ MOVES: tuple[str, ...] = ("plan", "hover", "descend", "approach", "seal", "lift"
                           "retreat")
 LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump branches near the drop zone)
 LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
+WALL_NORMAL_Z = 0.5  # a static contact whose normal is within 60 deg of horizontal is a wall (else floor)
+TURN_STEP = math.radians(3.0)  # rad between IK points when the tool is turned down about the lip
+
+
+def cup_loads(contacts: Contacts, exempt: set[int], walls: set[int]) -> Contacts:
+    """The contacts on a held parcel that load the cup (``PickExecutor._carry_step``): all but the exempt
+    bodies' bearing ones (pushing up from below), and, while any of those still bears, all but the static
+    ``walls``' pushes too (a wall only reacts, to the sideways part of the support's push)."""
+    bearing = contacts.bearing(exempt) & (contacts.normal_force > 0.0)
+    reacting = np.isin(contacts.bodies, sorted(walls)) & bool(np.any(bearing))
+    return contacts.without(~(bearing | reacting))
 
 
 @dataclass(frozen=True)
@@ -138,7 +151,9 @@ class _Pick:
     cid: int | None = None
     monitor: HoldMonitor | None = None
     supports: set[int] = field(default_factory=set)  # bodies touching the parcel when it was attached
+    relief: np.ndarray | None = None  # horizontal move off the bin walls it touched, at the lift's start
     x_axis: np.ndarray | None = None  # the cup's yaw, kept while carrying
+    carry_axis: np.ndarray | None = None  # the tool axis while carrying: the contact axis, or straight down once turned
     com_in_tool: np.ndarray | None = None  # the held parcel's COM in the tool frame, as attached
     R_in_tool: np.ndarray | None = None  # and its rotation
 
@@ -457,7 +472,9 @@ class PickExecutor:
         is read from the cup's model (``HoldMonitor``), never from this constraint."""
         c, arm, body = self.sim.client, self.arm, pick.parcel.body_id
         # before the filter change below, which drops the body's contact manifolds until the next step
-        pick.supports = {int(b) for b in contact_forces(c, body, {arm.body}).bodies}
+        touching = contact_forces(c, body, {arm.body})
+        pick.supports = {int(b) for b in touching.bodies}
+        pick.relief = self._wall_relief(touching)
         tip, orn = arm.tip_pose()
         bpos, born = p.getBasePositionAndOrientation(body, physicsClientId=c)  # COM frame
         inv_p, inv_o = p.invertTransform(bpos, born)
@@ -506,10 +523,17 @@ class PickExecutor:
         it, and so has one whose seal breaks while it touches such a body: collision, that body named.
         The cup's wrench counts every contact but the exempt bodies' bearing ones (pushing up from
         below): while the parcel still rests there, how the load splits between the cup and its
-        support is statically indeterminate, so the cup is taken to carry it all. A ring condition
+        support is statically indeterminate, so the cup is taken to carry it all. For as long as it
+        still bears on them, the exempt static walls' pushes are left out as well: a wall only reacts,
+        here to the sideways part of a slanted support's push (a tube resting on a neighbour's flank
+        is pressed into the corner, and the walls push back 1-3 N); dropping the support's push but
+        keeping the walls' reaction charged the cup with a sideways load that nothing exerts (torsion
+        drops at the first millimetre of the lift). Once the parcel is off its supports, wall contacts
+        count in full. A ring condition
         violated for ``CupSpec.violation_steps`` steps in a row breaks the seal: dropped.
         """
         strike, client, body = self.arm.config.collision_force, self.sim.client, pick.parcel.body_id
+        walls = {b for b in exempt if self._is_static(b)}
 
         def check() -> tuple[str, Failure] | None:
             contacts = contact_forces(client, body, {self.arm.body})
@@ -518,7 +542,7 @@ class PickExecutor:
                 contacts.bodies[np.flatnonzero(foreign)[np.argmax(contacts.normal_force[foreign])]])
             if np.any(foreign & (contacts.normal_force > strike)):
                 return "collision", Failure(move, "held parcel", body=hardest)
-            loads = contacts.without(~contacts.bearing(exempt))
+            loads = cup_loads(contacts, exempt, walls)
             # pose and velocity measured, acceleration as commanded (the executed trajectory's)
             tool = ToolState(*self.kin.tool_motion(self.arm.q, self.arm.qd, self.arm.command[2]))
             cause = pick.monitor.update(tool, *self._held_pose(pick, tool), loads.points, loads.forces)
@@ -530,7 +554,8 @@ class PickExecutor:
 
         return check
 
-    def _carry(self, scene: Scene, pick: _Pick, move: str, end: np.ndarray, exempt: set[int]) -> MoveReport:
+    def _carry(self, scene: Scene, pick: _Pick, move: str, end: np.ndarray, exempt: set[int],
+               via: np.ndarray | None = None) -> MoveReport:
         """Carry the held parcel along the straight tip line to ``end`` at the contact axis and yaw,
         timed so that no predicted ring load exceeds ``carry_load_target`` (payload-aware motion)."""
         g, arm = self.grasp, self.arm
@@ -538,9 +563,11 @@ class PickExecutor:
         tool = ToolState(*self.kin.tool_motion(arm.q, np.zeros_like(arm.q), np.zeros_like(arm.q)))
         a_max = pick.monitor.allowed_acceleration(tool, *self._held_pose(pick, tool), g.carry_load_target,
                                                   g.min_carry_acceleration)
-        traj, why = self._carry_line(arm.q, end, pick, a_max)
-        if traj is None and move == "transport":  # the chord dips inside the arm's reach: round the base
-            traj, why = self._carry_around(arm.q, end, pick, a_max, why)
+        if move == "transport":  # the chord, round the base where it dips inside the arm's reach, or turned down
+            traj, why = self._transport_line(arm.q, end, pick, a_max)
+        else:
+            traj, why = (self._carry_line(arm.q, end, pick, a_max) if via is None
+                         else self._carry_legs(arm.q, [via, end], pick, a_max))
         if traj is None:
             return self._report(move, "unreachable", Failure(move, condition=why), t_start=t0)
         if move == "transport":  # the held parcel is part of the check: it must clear the rim and the pile
@@ -563,10 +590,68 @@ class PickExecutor:
         """A carrying line at the contact axis, the cup's yaw held; failing that with the yaw free (the
         held yaw may need an IK branch switch: the cup may then turn, and the wrench has I alpha)."""
         g = self.grasp
-        traj, why = self._line(q0, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max, pick.x_axis)
+        axis = pick.contact_axis if pick.carry_axis is None else pick.carry_axis
+        traj, why = self._line(q0, end, axis, g.carry_dt, g.carry_speed, a_max, pick.x_axis)
         if traj is None:
-            traj, why = self._line(q0, end, pick.contact_axis, g.carry_dt, g.carry_speed, a_max)
+            traj, why = self._line(q0, end, axis, g.carry_dt, g.carry_speed, a_max)
         return traj, why
+
+    def _transport_line(self, q0: np.ndarray, end: np.ndarray, pick: _Pick, a_max: float
+                        ) -> tuple[Trajectory | None, str | None]:
+        """The transport: the chord at the contact axis, else round the base (``_carry_around``); for a
+        tilted pick that neither solves, the tool is first turned about the lip to straight down
+        (``_turn_down``), as a cell reorients a side-picked parcel once it is clear of the pile, and the
+        chord or the detour is solved top-down from there."""
+        traj, why = self._carry_line(q0, end, pick, a_max)
+        if traj is None:
+            traj, why = self._carry_around(q0, end, pick, a_max, why)
+        if traj is not None:
+            return traj, None
+        turn, why_turn = self._turn_down(q0, pick, a_max)
+        if turn is None:
+            return None, why if why_turn is None else f"{why} (turned down: {why_turn})"
+        held = pick.carry_axis, pick.x_axis
+        pick.carry_axis, pick.x_axis = np.array([0.0, 0.0, -1.0]), self.kin.tip_x(turn.q[-1])
+        rest, why_rest = self._carry_line(turn.q[-1], end, pick, a_max)
+        if rest is None:
+            rest, why_rest = self._carry_around(turn.q[-1], end, pick, a_max, why_rest)
+        if rest is None:
+            pick.carry_axis, pick.x_axis = held
+            return None, f"{why} (turned down: {why_rest})"
+        return concatenate([turn, rest]), None
+
+    def _turn_down(self, q0: np.ndarray, pick: _Pick, a_max: float) -> tuple[Trajectory | None, str | None]:
+        """The tool turned about the lip, tip held, from the contact axis to straight down in steps of at most
+        ``TURN_STEP``, timed so that the held parcel's centre of mass moves within ``a_max`` and the carrying
+        speed (``omega |d|``, ``alpha |d|``); (None, why) when the pick is already top-down or no IK follows."""
+        g, arm = self.grasp, self.arm
+        axis = np.asarray(pick.contact_axis, dtype=np.float64)
+        down = np.array([0.0, 0.0, -1.0])
+        angle = float(np.arccos(np.clip(axis @ down, -1.0, 1.0)))
+        if angle < TURN_STEP:
+            return None, None
+        about = np.cross(axis, down)
+        about /= np.linalg.norm(about)
+        tip = self.kin.forward(q0)[0]
+        path, q = [np.asarray(q0, dtype=np.float64)], q0
+        n = math.ceil(angle / TURN_STEP)
+        for k in range(1, n + 1):
+            step = arm.cartesian_path(q, tip[None], Rotation.from_rotvec(about * angle * k / n).apply(axis))
+            if step is None:
+                return None, "ik failed turning the tool down"
+            q = np.asarray(step[0])
+            path.append(q)
+        joints = np.asarray(path)
+        jump = float(np.abs(np.diff(joints, axis=0)).max())
+        if jump > MAX_IK_JUMP:
+            return None, f"ik jumped {jump:.2f} rad turning the tool down"
+        traj = path_trajectory(joints, arm.limits, g.carry_dt)
+        lever = max(float(np.linalg.norm(pick.com_in_tool)), 1e-3)
+        motion = [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
+        w = max(float(np.linalg.norm(m[3])) for m in motion) * lever
+        a = max(float(np.linalg.norm(m[5])) for m in motion) * lever
+        scale = min(1.0, g.carry_speed / max(w, 1e-9), math.sqrt(a_max / max(a, 1e-9)))
+        return (traj if scale >= 1.0 else path_trajectory(joints, arm.limits, g.carry_dt, 0.98 * scale)), None
 
     def _carry_around(self, q0: np.ndarray, end: np.ndarray, pick: _Pick, a_max: float, why: str | None
                       ) -> tuple[Trajectory | None, str | None]:
@@ -583,13 +668,45 @@ class PickExecutor:
         heading = np.arctan2(*np.sum(rel / np.linalg.norm(rel, axis=1, keepdims=True), axis=0)[::-1])
         reach = float(np.linalg.norm(rel, axis=1).max())
         via = np.array([*(base + reach * np.array([np.cos(heading), np.sin(heading)])), max(start[2], end[2])])
-        first, why_first = self._carry_line(q0, via, pick, a_max)
-        if first is None:
-            return None, f"{why} (round the base: {why_first})"
-        second, why_second = self._carry_line(first.q[-1], end, pick, a_max)
-        if second is None:
-            return None, f"{why} (round the base: {why_second})"
-        return concatenate([first, second]), None
+        traj, why_legs = self._carry_legs(q0, [via, end], pick, a_max)
+        return (traj, None) if traj is not None else (None, f"{why} (round the base: {why_legs})")
+
+    def _carry_legs(self, q0: np.ndarray, points: list[np.ndarray], pick: _Pick, a_max: float
+                    ) -> tuple[Trajectory | None, str | None]:
+        """Carrying lines through ``points`` in turn (``_carry_line``), each timed rest-to-rest."""
+        legs, q = [], q0
+        for point in points:
+            leg, why = self._carry_line(q, point, pick, a_max)
+            if leg is None:
+                return None, why
+            legs.append(leg)
+            q = leg.q[-1]
+        return concatenate(legs), None
+
+    def _is_static(self, body: int) -> bool:
+        """A body of zero mass (the bin, a fixture): it only reacts, never pushes."""
+        return p.getDynamicsInfo(int(body), -1, physicsClientId=self.sim.client)[0] == 0.0
+
+    def _wall_relief(self, touching: Contacts) -> np.ndarray | None:
+        """The horizontal tip offset that takes the parcel off the static walls it touches at attachment
+        (``GraspConfig.wall_relief`` along the sum of their distinct horizontal contact normals, which point
+        into the parcel), or None when it touches none or is wedged between opposite ones.
+
+        The pile presses a parcel against the bin wall; once it is lifted nothing does, and a real bellows
+        cup, compliant sideways by millimetres, lets it relax off the wall. The simulated attachment is
+        rigid: the arm's tracking drift of 0.1-0.8 mm under load then presses the parcel into the rigid wall
+        at 2-4 N for the whole lift, a few centimetres off the cup axis (torsion drops measured on stacked
+        piles, with the wall the only body pushing). The tool makes that relief move itself."""
+        static = np.array([self._is_static(int(b)) for b in touching.bodies], dtype=bool)
+        walls = static & (np.abs(touching.normals[:, 2]) < WALL_NORMAL_Z) if len(touching.bodies) else static
+        if not np.any(walls):
+            return None
+        flat = touching.normals[walls, :2] / np.linalg.norm(touching.normals[walls, :2], axis=1, keepdims=True)
+        direction = np.unique(np.round(flat, 1), axis=0).sum(axis=0)  # one vote per wall, not per contact point
+        size = float(np.linalg.norm(direction))
+        if size < 0.5:  # opposite walls: no way off both
+            return None
+        return np.array([*(self.grasp.wall_relief * direction / size), 0.0])
 
     def _lift_height(self, scene: Scene, pick: _Pick) -> float:
         """Tip height for carrying: the pile top (every other parcel and fixture) or the rim, whichever
@@ -608,7 +725,11 @@ class PickExecutor:
         self._attach(pick)
         tip = self.kin.forward(self.arm.q)[0]
         top = np.array([tip[0], tip[1], max(self._lift_height(scene, pick), tip[2] + self.grasp.min_lift)])
-        return self._carry(scene, pick, "lift", top, pick.supports)
+        if pick.relief is None:
+            return self._carry(scene, pick, "lift", top, pick.supports)
+        # break away: off the walls while rising the first wall_relief_rise, then straight up
+        via = tip + pick.relief + np.array([0.0, 0.0, min(self.grasp.wall_relief_rise, top[2] - tip[2])])
+        return self._carry(scene, pick, "lift", top + pick.relief, pick.supports, via)
 
     def _set_down(self, pick: _Pick) -> None:
         """A parcel that cannot be carried on is lowered back along the lift before it is let go (as a
