@@ -9,9 +9,12 @@ from __future__ import annotations
 import dataclasses
 import math
 from numbers import Integral, Real
-from typing import Any, Iterable, Mapping, TypeVar
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, TypeVar
 
-T = TypeVar("T")
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+T = TypeVar("T", bound="DataclassInstance")
 
 
 def require(ok: bool, owner: str, message: str) -> None:
@@ -36,7 +39,7 @@ def _bounds_text(lo: int | None, hi: int | None) -> str:
 def require_int(owner: str, name: str, value: Any, lo: int | None = None, hi: int | None = None) -> None:
     """``value`` is an integer (numpy ones too, bools not) within ``[lo, hi]``; a ``None`` bound is open."""
     ok = (isinstance(value, Integral) and not isinstance(value, bool)
-          and (lo is None or value >= lo) and (hi is None or value <= hi))
+          and (lo is None or int(value) >= lo) and (hi is None or int(value) <= hi))
     require(ok, owner, f"{name} must be an int{_bounds_text(lo, hi)}, got {value!r}")
 
 
@@ -50,7 +53,7 @@ def require_positive_numbers(obj: Any, names: Iterable[str]) -> None:
     """Each named field of ``obj`` is a finite real > 0 (lengths, rates, scales); NaN and inf are refused."""
     for name in names:
         value = getattr(obj, name)
-        ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+        ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and float(value) > 0
         require(ok, type(obj).__name__, f"{name} must be a finite number > 0, got {value!r}")
 
 
@@ -82,7 +85,7 @@ def config_to_dict(config: Any) -> dict[str, Any]:
     return _tuples_to_lists(dataclasses.asdict(config))
 
 
-def config_from_dict(cls: type[T], data: Mapping[str, Any], nested: Mapping[str, type] | None = None) -> T:
+def config_from_dict(cls: type[T], data: Mapping[str, Any], nested: Mapping[str, type[DataclassInstance]] | None = None) -> T:
     """Rebuild ``cls`` from a stored dict: unknown keys are refused (a renamed or foreign field must not pass
     silently), lists become tuples, and each ``nested`` field given as a dict is rebuilt as its dataclass."""
     unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})

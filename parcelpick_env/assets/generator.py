@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from parcelpick_env.assets.parcel import CATEGORIES, ParcelAsset
+from parcelpick_env.assets.parcel import CATEGORIES, ParcelAsset, Split
 from parcelpick_env.suction.config import CELL_CUP_RADIUS, SuctionConfig
 from parcelpick_env.suction.cup import CARRY_LOAD_TARGET, CupSpec
 
@@ -87,8 +87,8 @@ def _sample_carton_side(rng: np.random.Generator) -> float:
 def _rectangular(rng: np.random.Generator) -> trimesh.Trimesh:
     ext = np.sort([_sample_carton_side(rng) for _ in range(3)])[::-1]  # x >= y >= z: flat side on z
     half = ext / 2
-    counts = tuple(int(np.clip(round(e / 0.025), 4, 14)) for e in ext)
-    mesh = _grid_box(counts)
+    nx, ny, nz = (int(np.clip(round(e / 0.025), 4, 14)) for e in ext)
+    mesh = _grid_box((nx, ny, nz))
     q = mesh.vertices.copy()
     axis = np.argmax(np.abs(q) * (1 + 1e-9 * np.arange(3)), axis=1)
     w = _face_weight(q, axis)
@@ -197,12 +197,20 @@ def _colours(mesh: trimesh.Trimesh, category: str, rng: np.random.Generator) -> 
     return np.round(colours * 255).astype(np.uint8), rgba
 
 
+def _checked_split(split: str) -> Split:
+    """``split`` as the ``Split`` literal a ``ParcelAsset`` holds; anything else is refused by name."""
+    if split == "train":
+        return "train"
+    if split == "test":
+        return "test"
+    raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+
+
 def generate_parcel(category: str, rng: np.random.Generator, asset_id: str, split: str) -> ParcelAsset:
     """One random parcel of ``category``; all randomness comes from ``rng``."""
     if category not in CATEGORIES:
         raise ValueError(f"unknown parcel category {category!r}; expected one of {CATEGORIES}")
-    if split not in ("train", "test"):
-        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    checked_split = _checked_split(split)
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng must be a numpy Generator, got {type(rng).__name__}")
     mesh = _BUILDERS[category](rng)
@@ -217,8 +225,10 @@ def generate_parcel(category: str, rng: np.random.Generator, asset_id: str, spli
     # Contents shift: move the centre of mass up to 10 % of each extent (less for thin axes).
     com = mesh.center_mass + rng.uniform(-0.1, 0.1, 3) * extents * np.array([1.0, 1.0, 0.5])
     face_colours, rgba = _colours(mesh, category, rng)
+    if not isinstance(mesh.visual, trimesh.visual.ColorVisuals):  # a builder bug: textures cannot hold face colours
+        raise RuntimeError(f"generated {category} parcel {asset_id} has {type(mesh.visual).__name__}, not per-face colours")
     mesh.visual.face_colors = face_colours
     return ParcelAsset(
-        asset_id=asset_id, category=category, split=split, mesh=mesh, mass=mass,
+        asset_id=asset_id, category=category, split=checked_split, mesh=mesh, mass=mass,
         com=np.asarray(com, dtype=np.float64), rgba=rgba, extents=extents,
     )

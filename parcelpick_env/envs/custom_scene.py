@@ -24,14 +24,14 @@ from parcelpick_env.sim.simulator import Simulator
 def box_asset(extents: Sequence[float], mass: float, com: Sequence[float] = (0.0, 0.0, 0.0),
               asset_id: str | None = None, rgba=(0.75, 0.6, 0.4, 1.0)) -> ParcelAsset:
     """A rectangular carton of the given size (m) and mass (kg)."""
-    extents = np.asarray(extents, dtype=np.float64)
-    if extents.shape != (3,) or np.any(extents <= 0) or not mass > 0:
-        raise ValueError(f"a box needs 3 positive extents and a positive mass, got {extents}, {mass}")
-    mesh = trimesh.creation.box(extents=extents)
+    size = np.asarray(extents, dtype=np.float64)
+    if size.shape != (3,) or np.any(size <= 0) or not mass > 0:
+        raise ValueError(f"a box needs 3 positive extents and a positive mass, got {size}, {mass}")
+    mesh = trimesh.creation.box(extents=size)
     mesh.visual.face_colors = (np.asarray(rgba) * 255).astype(np.uint8)
-    name = asset_id or "box-{:.3f}x{:.3f}x{:.3f}-{:.2f}kg".format(*extents, mass)
+    name = asset_id or "box-{:.3f}x{:.3f}x{:.3f}-{:.2f}kg".format(*size, mass)
     return ParcelAsset(asset_id=name, category="rectangular", split="test", mesh=mesh, mass=float(mass),
-                       com=np.asarray(com, dtype=np.float64), rgba=tuple(rgba), extents=extents)
+                       com=np.asarray(com, dtype=np.float64), rgba=tuple(rgba), extents=size)
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,7 @@ class BoxScene:
         for i, b in enumerate(self.boxes):
             asset = box_asset(b.extents, b.mass, asset_id=f"placed-{i}", rgba=b.rgba)
             pos, orn = b.pose(self.bin.floor_z)
-            body = sim.add_parcel(asset, pos, orn, b.friction)
+            body = sim.add_parcel(asset, pos.tolist(), orn.tolist(), b.friction)
             parcels.append(ParcelState(i, body, asset, pos, orn, b.friction))
         sim.settle([ps.body_id for ps in parcels], max_steps=self.settle_steps)
         for ps in parcels:

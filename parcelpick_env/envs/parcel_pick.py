@@ -39,7 +39,7 @@ from __future__ import annotations
 import dataclasses
 from numbers import Real
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 import gymnasium as gym
 import numpy as np
@@ -55,6 +55,12 @@ from parcelpick_env.robot.arm import Gen3Arm
 from parcelpick_env.scene.scene import Scene
 from parcelpick_env.sim.simulator import Simulator
 
+if TYPE_CHECKING:  # for annotations only: at run time both are imported where first needed
+    from parcelpick_env.assets.library import AssetLibrary
+    from parcelpick_env.envs.replay import EpisodeRecorder
+
+T = TypeVar("T")
+
 
 def pixel_from_action(action: np.ndarray, width: int, height: int) -> tuple[int, int]:
     """The (row, col) a ``pixel``-mode action in [-1, 1]^2 (column, row) selects."""
@@ -65,6 +71,13 @@ def pixel_from_action(action: np.ndarray, width: int, height: int) -> tuple[int,
 
 NO_BODY = -1  # info['failure']['body'] when no other body was involved
 NOT_MEASURED = -1.0  # info['seal'] when the attempt ended before the seal was judged
+
+
+def _after_reset(value: T | None, name: str) -> T:
+    """``value``, which ``reset()`` creates; before the first reset, a clear error naming it."""
+    if value is None:
+        raise RuntimeError(f"ParcelPick env has no {name} yet: call reset() first")
+    return value
 
 
 def step_info(result: PickResult) -> dict[str, Any]:
@@ -84,6 +97,7 @@ def step_info(result: PickResult) -> dict[str, Any]:
 
 class ParcelPickEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
+    action_space: spaces.Box  # both action modes are boxes (see the module docstring)
 
     def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None, **overrides: Any) -> None:
         cfg = config or EnvConfig()
@@ -101,10 +115,10 @@ class ParcelPickEnv(gym.Env):
         self.executor: PickExecutor | None = None
         self.scene: Scene | None = None
         self.frame: CameraFrame | None = None
-        self.recorder = None
+        self.recorder: EpisodeRecorder | None = None
         self.replay_path: Path | None = None
         self._ready_q: np.ndarray | None = None
-        self._library = None
+        self._library: AssetLibrary | None = None
         self._episode = -1
         self._stats: dict[str, Any] = {}
 
@@ -123,7 +137,7 @@ class ParcelPickEnv(gym.Env):
         lo, hi = self._bin.workspace(margin=self.config.action_margin)
         return lo, hi
 
-    def _build_scene(self, seed: int, factory) -> Scene:
+    def _build_scene(self, seed: int, factory: Callable[[Simulator, int], Scene] | None) -> Scene:
         cfg = self.config
         if factory is not None:
             return factory(self.sim, seed)
@@ -140,30 +154,32 @@ class ParcelPickEnv(gym.Env):
     def _sleep_parcels(self) -> None:
         """Bullet's deactivation for the resting pile: contact wakes it again."""
         c = self.sim.client
-        for ps in self.scene.parcels:
+        for ps in _after_reset(self.scene, "scene").parcels:
             p.changeDynamics(ps.body_id, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=c)
             p.changeDynamics(ps.body_id, -1, activationState=p.ACTIVATION_STATE_SLEEP, physicsClientId=c)
 
     def _observe(self) -> dict[str, np.ndarray]:
-        self.frame = self.camera.capture(self.sim, self.scene, self.np_random)
-        return self._observation.build(self.frame, self.scene, self.sim, self._bin, self.np_random)
+        scene = _after_reset(self.scene, "scene")
+        self.frame = self.camera.capture(self.sim, scene, self.np_random)
+        return self._observation.build(self.frame, scene, self.sim, self._bin, self.np_random)
 
     def _info(self, **extra: Any) -> dict[str, Any]:
         s = self._stats
+        scene, frame = _after_reset(self.scene, "scene"), _after_reset(self.frame, "camera frame")
         info = {
             "attempts": s["attempts"], "successes": s["successes"], "parcels_placed": s["placed"],
-            "parcels_cleared": s["cleared"], "parcels_remaining": len(self.scene.parcels),
+            "parcels_cleared": s["cleared"], "parcels_remaining": len(scene.parcels),
             "parcels_lost": s["lost"],
             # how the scene was built: requested = placed + skipped (no room, scattered) + lost at reset
-            "parcels_requested": self.scene.meta.get("requested", s["placed"]),
-            "parcels_skipped": self.scene.meta.get("skipped", 0),
-            "parcels_lost_at_reset": self.scene.meta.get("lost", 0),
+            "parcels_requested": scene.meta.get("requested", s["placed"]),
+            "parcels_skipped": scene.meta.get("skipped", 0),
+            "parcels_lost_at_reset": scene.meta.get("lost", 0),
             "R_grasp": s["successes"] / s["attempts"] if s["attempts"] else 0.0,
             "R_object": s["cleared"] / s["placed"] if s["placed"] else 0.0,
             "consecutive_failures": s["consecutive"],
-            "intrinsics": self.frame.intrinsics.copy(), "extrinsics": self.frame.extrinsics.copy(),
+            "intrinsics": frame.intrinsics.copy(), "extrinsics": frame.extrinsics.copy(),
             "workspace": self._bin.workspace(),  # the cell's known geometry (bin floor and walls), not ground truth
-            "scene_seed": self.scene.seed,
+            "scene_seed": scene.seed,
             **self._observation.info(),  # 'privileged' (True only in obs_mode='state_dict') and its context
         }
         info.update(extra)
@@ -201,7 +217,7 @@ class ParcelPickEnv(gym.Env):
         return self._pixel_to_pose(a)
 
     def _pixel_to_pose(self, a: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, str | None]:
-        frame = self.frame
+        frame = _after_reset(self.frame, "camera frame")
         row, col = pixel_from_action(a, frame.width, frame.height)
         lookup = np.full((frame.height, frame.width), -1, dtype=np.int64)
         lookup[frame.point_pixels[:, 0], frame.point_pixels[:, 1]] = np.arange(len(frame.points))
@@ -215,41 +231,44 @@ class ParcelPickEnv(gym.Env):
         return frame.points[k].astype(np.float64), normal / norm, None
 
     def _link_chain(self, q: np.ndarray) -> np.ndarray:
-        tip, _, _, origins = self.arm.kin.forward(q)
-        base = np.asarray(self.arm.config.base_position)
+        arm = _after_reset(self.arm, "arm")
+        tip, _, _, origins = arm.kin.forward(q)
+        base = np.asarray(arm.config.base_position)
         return np.vstack([base, origins, tip])
 
     def _drop_departed(self) -> int:
         """Forget delivered parcels; remove those that fell out of the bin (``BinSpec.contains`` on the
         centre of mass, the definition the pile builder uses too). Returns how many fell out."""
+        scene = _after_reset(self.scene, "scene")
         kept, lost = [], 0
-        for ps in self.scene.parcels:
+        for ps in scene.parcels:
             if not self.sim.has_body(ps.body_id):
                 continue
             ps.position, ps.orientation = self.sim.body_pose(ps.body_id)
-            if self.scene.bin.contains(ps.world_com())[0]:
+            if scene.bin.contains(ps.world_com())[0]:
                 kept.append(ps)
             else:
                 self.sim.remove(ps.body_id)
                 lost += 1
         for k, ps in enumerate(kept):
             ps.object_id = k
-        self.scene.parcels = kept
+        scene.parcels = kept
         return lost
 
     def _settle_against_arm(self, steps: int = 240) -> None:
         """A parcel overhanging the near wall can overlap the arm, which joins the world after the pile
         is built: hold the arm at home and let contact push such parcels clear, then settle again."""
-        if self.arm.first_penetration(set(), depth=1e-4) is None:
+        arm, scene = _after_reset(self.arm, "arm"), _after_reset(self.scene, "scene")
+        if arm.first_penetration(set(), depth=1e-4) is None:
             return
-        self.arm.hold(steps, lambda: self.sim.step(1), self.sim.config.timestep)
-        bodies = [ps.body_id for ps in self.scene.parcels]
+        arm.hold(steps, lambda: self.sim.step(1), self.sim.config.timestep)
+        bodies = [ps.body_id for ps in scene.parcels]
         self.sim.settle(bodies, max_steps=self.config.grasp.max_post_settle_steps)
         lost = self._drop_departed()
         if lost:  # still part of building the scene: its own count of parcels lost, and placed
-            meta = self.scene.meta
+            meta = scene.meta
             meta["lost"] = meta.get("lost", 0) + lost
-            meta["placed"] = len(self.scene.parcels)
+            meta["placed"] = len(scene.parcels)
 
     # ------------------------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -283,7 +302,7 @@ class ParcelPickEnv(gym.Env):
             self.replay_path = Path(self.config.record_dir) / name
             self.recorder = EpisodeRecorder(self.replay_path, episode_id=name[:-4],
                                             max_points=self.config.record_points)
-            self.recorder.log_observation(0, self.frame, self.scene)
+            self.recorder.log_observation(0, _after_reset(self.frame, "camera frame"), self.scene)
         return obs, self._info(reason="cleared" if placed == 0 else None)
 
     def step(self, action: Any):
@@ -298,8 +317,10 @@ class ParcelPickEnv(gym.Env):
         if why is not None:
             result = PickResult("invalid_action", Failure("action", condition=why))
             extra["invalid_reason"] = why
+        elif point is None or normal is None:  # pragma: no cover - _parse_action gives a pose or a reason
+            raise RuntimeError("ParcelPick env: the action parser returned neither a pose nor a reason")
         else:
-            result = self.executor.attempt(self.scene, point, normal)
+            result = _after_reset(self.executor, "pick executor").attempt(self.scene, point, normal)
             if result.dynamic_steps > 0:
                 bodies = [ps.body_id for ps in self.scene.parcels if self.sim.has_body(ps.body_id)]
                 if bodies:  # the rest of the pile comes to rest (cheaper solver, as the pile builder does)
@@ -332,7 +353,7 @@ class ParcelPickEnv(gym.Env):
             self.recorder.log_result(k, result, link_chain=self._link_chain if self.arm else None,
                                      metrics={"R_grasp": info["R_grasp"], "R_object": info["R_object"],
                                               "reward": reward})
-            self.recorder.log_observation(k, self.frame, self.scene)
+            self.recorder.log_observation(k, _after_reset(self.frame, "camera frame"), self.scene)
             if terminated or truncated:
                 self.recorder.close()
                 self.recorder = None

@@ -20,7 +20,7 @@ Read a file back with ``rerun.chunk.RrdReader(path).store()``.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -80,7 +80,7 @@ class EpisodeRecorder:
         rec.log("world/action/normal", rr.Arrows3D(origins=[point], vectors=[0.08 * np.asarray(normal)],
                                                     colors=[[255, 0, 255]]))
 
-    def log_result(self, attempt: int, result: Any, link_chain: callable | None = None,
+    def log_result(self, attempt: int, result: Any, link_chain: Callable[[np.ndarray], np.ndarray] | None = None,
                    metrics: dict[str, float] | None = None) -> None:
         """The attempt's motion trace on ``sim_time``, its contact and its outcome."""
         rr, rec = self.rr, self.rec

@@ -29,6 +29,8 @@ final settle, so the returned pile rests under the simulator's own physics.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 import pybullet as pb
 import shapely
@@ -86,7 +88,7 @@ def _inner_bounds(spec: BinSpec) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stacked_poses(assets: list[ParcelAsset], cfg: PileConfig, rng: np.random.Generator,
-                   occupied: list[tuple[np.ndarray, np.ndarray]] = ()):
+                   occupied: Sequence[tuple[np.ndarray, np.ndarray]] = ()):
     """Start poses inside the chute: tumbled orientations, non-overlapping world AABBs, lowest of many
     spots. ``occupied`` holds the world AABBs (lo, hi) of the pile already in the bin."""
     spec = cfg.bin
@@ -271,7 +273,7 @@ def build_pile(sim: Simulator, config: PileConfig, seed: int, library: AssetLibr
     sim.add_bin(spec)
     body_of: dict[int, int] = {}
     live: dict[int, ParcelAsset] = {}
-    steps, fallen = 0, set()
+    steps, fallen = 0, set[int]()
     if config.layout == "stacked":  # waves through the chute, then take it away
         waves = np.array_split(np.arange(len(assets)), -(-len(assets) // WAVE_SIZE))
         for wave in waves:

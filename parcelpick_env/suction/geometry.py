@@ -15,6 +15,13 @@ import trimesh
 O3D_INVALID_ID = int(o3d.t.geometry.RaycastingScene.INVALID_ID)
 
 
+def o3d_tensor(array: np.ndarray) -> o3d.core.Tensor:
+    """A copy of ``array`` as an Open3D tensor of the same dtype, on the CPU (Open3D's defaults)."""
+    # Open3D's stubs list ``dtype`` and ``device`` as required, but the binding defaults both (to the array's
+    # dtype and CPU:0), so the one-argument call that works at run time matches no stub overload.
+    return o3d.core.Tensor(array)  # type: ignore[call-overload]
+
+
 def tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit tangents ``(u, w)`` per unit normal so that ``(u, w, n)`` is right-handed.
 
@@ -82,8 +89,8 @@ def build_scene(meshes: Sequence[trimesh.Trimesh],
         if offsets is not None:
             vertices = vertices + offsets[i]
         geometry_id = scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
+            o3d_tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+            o3d_tensor(np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
         if geometry_id != i:  # pragma: no cover - Open3D guarantees sequential ids
             raise RuntimeError(f"Open3D assigned geometry id {geometry_id} to mesh {i}")
     return scene

@@ -15,7 +15,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, validate_meshes
+from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, o3d_tensor, validate_meshes
 
 
 def camera_rays(intrinsics: np.ndarray, extrinsics: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -79,7 +79,7 @@ def object_visibility(meshes: Sequence[trimesh.Trimesh], intrinsics: np.ndarray,
         pixels = _bbox_pixels(mesh, intrinsics, extrinsics, int(width), int(height))
         pixels = pixels[(first[pixels] >= 0) & (first[pixels] != k)]
         if len(pixels):
-            hits = build_scene([mesh]).test_occlusions(o3d.core.Tensor(rays[pixels]),
+            hits = build_scene([mesh]).test_occlusions(o3d_tensor(rays[pixels]),
                                                        nthreads=num_threads)
             alone[k] += int(hits.numpy().sum())
 
