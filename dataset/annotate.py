@@ -16,9 +16,9 @@ import time
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 from dataset.config import LAYOUTS, OBJECT_SETS, RANDOM, GenerationConfig
+from parcelpick_env.farthest_points import fixed_size_sample
 
 Record = dict[str, np.ndarray]
 STAGES = ("pile", "render", "fps", "scoring", "write")  # timing keys; "<stage>_cpu" holds CPU seconds
@@ -54,35 +54,6 @@ def _resources(config: GenerationConfig) -> tuple[Any, Any, Any]:
     return _RESOURCES["sim"], _RESOURCES["library"], _RESOURCES["camera"]
 
 
-def farthest_point_indices(points: np.ndarray, k: int, rng: np.random.Generator, presample: float = 0.0) -> np.ndarray:
-    """Indices of ``k`` farthest-point samples of ``points`` (Open3D's C++ FPS; deterministic under ``rng``).
-
-    FPS costs O(len(points) * k); ``presample > 0`` first keeps a uniform random ``presample * k``
-    subset, which bounds the cost while keeping FPS's even coverage. Clouds smaller than ``k`` are
-    padded by repeating random points, so every record has exactly ``k`` points.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise ValueError(f"need a non-empty (P, 3) point cloud, got shape {points.shape}")
-    if k < 1:
-        raise ValueError(f"k must be >= 1, got {k}")
-    n = len(points)
-    if n <= k:
-        extra = np.sort(rng.choice(n, size=k - n, replace=True)) if k > n else np.empty(0, np.int64)
-        return np.concatenate([np.arange(n), extra]).astype(np.int64)
-    candidates = np.arange(n)
-    if presample > 0 and n > presample * k:
-        candidates = np.sort(rng.choice(n, size=int(presample * k), replace=False))
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[candidates]))
-    # Open3D's FPS returns a point cloud, not indices; carry each candidate's index through it in the
-    # (float64, exact for integers < 2**53) colour channel, which FPS copies with the points.
-    tags = np.zeros((len(candidates), 3))
-    tags[:, 0] = np.arange(len(candidates))
-    cloud.colors = o3d.utility.Vector3dVector(tags)
-    sampled = cloud.farthest_point_down_sample(int(k))
-    return candidates[np.asarray(sampled.colors)[:, 0].astype(np.int64)]
-
-
 def _bounding_boxes(scene: Any) -> dict[str, np.ndarray]:
     """Oriented 3-D boxes: each parcel's body-frame mesh bounds carried by its pose."""
     m = len(scene.parcels)
@@ -98,11 +69,23 @@ def _bounding_boxes(scene: Any) -> dict[str, np.ndarray]:
     return {"bbox_center": centers, "bbox_extent": extents, "bbox_rotation": rotations, "bbox_corners": corners}
 
 
+def _label_scores(label_set: str, scene: Any, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray,
+                  visibility: np.ndarray, config: GenerationConfig) -> Any:
+    """One label set's four channels for the sampled points (docs/labels.md, "Label sets")."""
+    from parcelpick_env.suction.quality import definition_scorer, score_definition
+    from parcelpick_env.suction.scorer import SuctionScorer
+
+    p, n = points.astype(np.float64), normals.astype(np.float64)
+    if label_set == "paper":  # the paper's channels, with the run's own scorer config
+        return SuctionScorer.from_scene(scene, config.suction).score(p, n, object_ids, visibility=visibility)
+    scorer = definition_scorer(label_set, scene, num_threads=config.suction.num_threads)
+    return score_definition(label_set, scorer, p, n, object_ids, visibility=visibility)
+
+
 def annotate_scene_timed(scene_seed: int, config: GenerationConfig) -> tuple[Record, dict[str, float]]:
     """``annotate_scene`` plus wall and CPU seconds per stage (for benchmarks and progress reports)."""
     from parcelpick_env.scene.config import PileConfig
     from parcelpick_env.scene.pile import build_pile
-    from parcelpick_env.suction.scorer import SuctionScorer
     from parcelpick_env.suction.visibility import object_visibility
 
     if not isinstance(config, GenerationConfig):
@@ -122,7 +105,7 @@ def annotate_scene_timed(scene_seed: int, config: GenerationConfig) -> tuple[Rec
     pile_config = PileConfig(num_parcels=num_parcels, layout=layout, object_set=object_set, split=config.split)
     scene = build_pile(sim, pile_config, seed=pile_seed, library=library)
     t1, c1 = time.perf_counter(), time.process_time()
-    frame = camera.capture(sim, scene, np.random.default_rng(camera_ss))
+    frame = camera.capture(sim, scene, np.random.default_rng(camera_ss), normals=False)  # normals: at samples only
     noise = np.random.default_rng(noise_ss).normal(0.0, rgb_noise_std, size=frame.rgb.shape)
     rgb = np.clip(np.rint(frame.rgb.astype(np.float64) + noise), 0, 255).astype(np.uint8)
     t2, c2 = time.perf_counter(), time.process_time()
@@ -131,31 +114,38 @@ def annotate_scene_timed(scene_seed: int, config: GenerationConfig) -> tuple[Rec
     candidates = np.flatnonzero(over_bin)
     if len(candidates) == 0:
         raise RuntimeError(f"scene seed {scene_seed}: the camera saw no points over the bin")
-    chosen = candidates[farthest_point_indices(frame.points[candidates], config.annotation_points,
-                                               np.random.default_rng(sample_ss), config.fps_presample)]
+    chosen = candidates[fixed_size_sample(frame.points[candidates], config.annotation_points,
+                                          np.random.default_rng(sample_ss), config.fps_presample)]
     points = np.ascontiguousarray(frame.points[chosen], dtype=np.float32)
-    normals = np.ascontiguousarray(frame.normals[chosen], dtype=np.float32)
+    tn, cn = time.perf_counter(), time.process_time()
+    normals = np.ascontiguousarray(camera.normals_at(frame, chosen), dtype=np.float32)
+    normals_s, normals_cpu = time.perf_counter() - tn, time.process_time() - cn  # timed as part of the render
     object_ids = np.ascontiguousarray(frame.point_object_ids[chosen], dtype=np.int32)
     pixels = np.ascontiguousarray(frame.point_pixels[chosen], dtype=np.int32)
     t3, c3 = time.perf_counter(), time.process_time()
     meshes = scene.world_meshes()
     visibility = np.asarray(object_visibility(meshes, frame.intrinsics, frame.extrinsics, frame.width, frame.height,
                                               occluders=scene.bin.meshes()), dtype=np.float64)
-    scores = SuctionScorer.from_scene(scene, config.suction).score(points.astype(np.float64),
-                                                                     normals.astype(np.float64), object_ids,
-                                                                     visibility=visibility)
+    label_sets = {name: _label_scores(name, scene, points, normals, object_ids, visibility, config)
+                  for name in (config.labels, *config.extra_labels)}
+    scores = label_sets[config.labels]
     labels = np.ascontiguousarray(scores.as_array(), dtype=np.float32)
     t4, c4 = time.perf_counter(), time.process_time()
     # wall seconds per stage, and this process's CPU seconds (all threads), which contention does not inflate
-    timings = {"pile": t1 - t0, "render": t2 - t1, "fps": t3 - t2, "scoring": t4 - t3,
-               "pile_cpu": c1 - c0, "render_cpu": c2 - c1, "fps_cpu": c3 - c2, "scoring_cpu": c4 - c3}
+    timings = {"pile": t1 - t0, "render": t2 - t1 + normals_s, "fps": t3 - t2 - normals_s, "scoring": t4 - t3,
+               "pile_cpu": c1 - c0, "render_cpu": c2 - c1 + normals_cpu, "fps_cpu": c3 - c2 - normals_cpu,
+               "scoring_cpu": c4 - c3}
 
     parcels = scene.parcels
     record: Record = {
         # per point (what a model trains on)
         "points": points,
         "normals": normals,
-        "labels": labels,  # LABEL_CHANNELS
+        "labels": labels,  # LABEL_CHANNELS, of the label set below
+        "label_set": np.array(config.labels),
+        **{key: value for name in config.extra_labels for key, value in (
+            (f"labels_{name}", np.ascontiguousarray(label_sets[name].as_array(), dtype=np.float32)),
+            (f"score_{name}", np.ascontiguousarray(label_sets[name].total, dtype=np.float32)))},
         "score": np.ascontiguousarray(scores.total, dtype=np.float32),
         "object_ids": object_ids,
         "point_pixels": pixels,

@@ -21,6 +21,7 @@ from parcelpick_env.config_checks import (
     require_positive_ints,
 )
 from parcelpick_env.suction.config import SuctionConfig
+from parcelpick_env.suction.quality import LABEL_SETS
 
 SPLITS = ("train", "test")
 LAYOUTS = ("stacked", "scattered")
@@ -39,6 +40,11 @@ class GenerationConfig:
     strength from it, so models see a range of sensor quality. Camera fields left ``None`` keep the
     camera module's defaults. ``fps_presample`` bounds farthest-point sampling cost: the cloud is first
     reduced uniformly at random to ``fps_presample * annotation_points`` points (0 disables this).
+    ``labels`` picks the channel set (docs/labels.md, "Label sets"): ``"paper"``, the paper's four channels with
+    the scorer config ``suction``; or ``"physical"``, whether the env's own cup would hold each pick
+    (``parcelpick_env.suction.quality.PhysicalCell``: the env's cup, real masses; ``suction`` is then unused).
+    ``extra_labels`` stores more sets beside it, as ``labels_<set>`` and ``score_<set>`` (test sets carry both, so
+    the AP's label oracle reads the set that matches each quality definition).
     """
 
     scenes: int = 1000
@@ -63,6 +69,8 @@ class GenerationConfig:
     compression: str = "gzip"
     compression_level: int = 4
     suction: SuctionConfig = field(default_factory=SuctionConfig)
+    labels: str = "paper"
+    extra_labels: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         owner = "GenerationConfig"
@@ -93,6 +101,12 @@ class GenerationConfig:
         require(np.isfinite(lo) and np.isfinite(hi) and 0.0 <= lo <= hi, owner,
                 f"rgb_noise_std must be a range (min, max) with 0 <= min <= max, got {self.rgb_noise_std!r}")
         require_choice(owner, "compression", self.compression, COMPRESSIONS)
+        require_choice(owner, "labels", self.labels, LABEL_SETS)
+        object.__setattr__(self, "extra_labels", tuple(self.extra_labels))
+        for extra in self.extra_labels:
+            require_choice(owner, "extra_labels", extra, LABEL_SETS)
+        require(self.labels not in self.extra_labels and len(set(self.extra_labels)) == len(self.extra_labels), owner,
+                f"extra_labels must not repeat a set or the main one ({self.labels!r}), got {self.extra_labels!r}")
         require(isinstance(self.suction, SuctionConfig), owner,
                 f"suction must be a SuctionConfig, got {type(self.suction)}")
 

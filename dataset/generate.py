@@ -46,6 +46,7 @@ from dataset.storage import (
     write_shard,
 )
 from parcelpick_env.cli import check_output_path, run_cli
+from parcelpick_env.suction.quality import LABEL_SETS
 
 log = logging.getLogger(__name__)
 
@@ -290,6 +291,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes-per-shard", type=int, default=d.scenes_per_shard)
     p.add_argument("--library-seed", type=int, default=d.library_seed)
     p.add_argument("--compression", choices=COMPRESSIONS, default=d.compression)
+    p.add_argument("--labels", choices=LABEL_SETS, default=d.labels,
+                   help="channel set (docs/labels.md): the paper's, or whether the env's own cup would hold the pick")
+    p.add_argument("--extra-labels", nargs="*", choices=LABEL_SETS, default=list(d.extra_labels),
+                   help="more label sets stored beside the main one (labels_<set>, score_<set>)")
     p.add_argument("--no-images", action="store_true", help="store only the annotated points, not RGB-D")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -303,7 +308,8 @@ def config_from_args(args: argparse.Namespace) -> GenerationConfig:
         dropout_prob=args.dropout, renderer=args.renderer, rgb_noise_std=tuple(args.rgb_noise),
         fps_presample=args.fps_presample,
         scenes_per_shard=args.scenes_per_shard, library_seed=args.library_seed, compression=args.compression,
-        store_images=not args.no_images,
+        store_images=not args.no_images, labels=args.labels,
+        extra_labels=tuple(args.extra_labels),
     )
 
 

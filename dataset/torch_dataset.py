@@ -19,6 +19,19 @@ from dataset.storage import open_dataset
 ITEM_KEYS = ("points", "normals", "labels", "object_ids")
 
 
+def label_key(config: dict[str, Any], label_set: str | None, root: str | os.PathLike = "dataset") -> tuple[str, str]:
+    """(label set, stored key) for ``label_set`` in a dataset made with ``config`` (its manifest's): ``labels`` for
+    the main set, ``labels_<set>`` for one stored beside it; one clear error naming what the dataset holds."""
+    main = str(config.get("labels", "paper"))  # datasets made before label sets hold the paper's
+    extras = [str(name) for name in config.get("extra_labels", [])]
+    if label_set is None or label_set == main:
+        return main, "labels"
+    if label_set in extras:
+        return label_set, f"labels_{label_set}"
+    raise ValueError(f"{root} holds the label sets {[main, *extras]}, not {label_set!r} "
+                     "(python -m dataset.generate --labels / --extra-labels)")
+
+
 class ParcelSuctionDataset(Dataset):
     """Items are dicts: ``points`` (N,3) float32, ``normals`` (N,3) float32, ``labels`` (N,4) float32
     [seal, wrench, collision, visibility], ``object_ids`` (N,) int64, plus ``index`` (the item index).
@@ -29,7 +42,9 @@ class ParcelSuctionDataset(Dataset):
     the gravity-dependent wrench, unchanged) and jitters points by ``jitter_std`` metres.
     Randomness is drawn from ``(seed, epoch, index)`` so an epoch is reproducible; call
     ``set_epoch`` to vary it between epochs. ``verify`` (default) checks every array read against its stored
-    digest (``dataset.storage``); ``verify_checksums`` also checksums every shard up front.
+    digest (``dataset.storage``); ``verify_checksums`` also checksums every shard up front. ``label_set`` serves
+    one of the stored label sets (docs/labels.md, "Label sets") as ``labels``: the main one (None, the default) or
+    one stored beside it with ``--extra-labels``.
     """
 
     def __init__(
@@ -44,6 +59,7 @@ class ParcelSuctionDataset(Dataset):
         seed: int = 0,
         verify_checksums: bool = False,
         verify: bool = True,
+        label_set: str | None = None,
     ) -> None:
         if num_points is not None and (not isinstance(num_points, int) or num_points < 1):
             raise ValueError(f"num_points must be a positive integer or None, got {num_points!r}")
@@ -56,6 +72,7 @@ class ParcelSuctionDataset(Dataset):
         if split is not None and split != stored_split:
             raise ValueError(f"{root} holds the {stored_split!r} split, not {split!r}")
         self.split = stored_split
+        self.label_set, self.label_key = label_key(self.store.config, label_set, root)
         self.num_points = num_points
         self.augment = augment
         self.jitter_std = float(jitter_std)
@@ -74,10 +91,11 @@ class ParcelSuctionDataset(Dataset):
         if not -len(self) <= index < len(self):
             raise IndexError(f"index {index} out of range for {len(self)} scenes")
         index = index % len(self)
-        arrays = self.store.scene(index, ITEM_KEYS)
+        keys = tuple(self.label_key if key == "labels" else key for key in ITEM_KEYS)
+        arrays = self.store.scene(index, keys)
         points = arrays["points"].astype(np.float32)
         normals = arrays["normals"].astype(np.float32)
-        labels = arrays["labels"].astype(np.float32)
+        labels = arrays[self.label_key].astype(np.float32)
         object_ids = arrays["object_ids"].astype(np.int64)
         rng = np.random.default_rng([self.seed, self.epoch, index])
         n = len(points)

@@ -1,16 +1,22 @@
-"""Offline AP of a policy on stored test scenes (SuctionNet protocol plus parcel visibility).
+"""Offline AP of a policy on stored test scenes (SuctionNet-1Billion's protocol; docs/protocols.md).
 
     python eval/ap.py --policy normal_std --data data/test --scenes 100 --out results/normal_std_ap.json
     python -m eval.ap --policy diffusion --data data/test --checkpoint runs/diffusion/best.pt
+    python -m eval.ap --policy diffusion --data data/test --quality physical   # would the picks hold in the env?
+    python -m eval.ap --policy oracle --data data/test     # the label oracle: the best stored labels
     python -m eval.ap --policy cao --data data/test --dump runs/dumps/cao        # SuctionNet N x 7 files
     python -m eval.ap --predictions runs/dumps/cao --data data/test             # score a dump, any code base's
 
 Per scene: the policy sees an observation rebuilt from the stored capture (the labelled cloud, RGB-D
-and calibration; never the labels). Its candidates go through NMS (0.02 m), each is assigned to the
-nearest true parcel surface, the 10 best per parcel are kept, and every kept candidate is re-scored
-online on the TRUE meshes, rebuilt from the stored asset ids and poses, with the shared suction
-scorer (seal, wrench, collision, and the stored per-parcel visibility). ``eval.metrics`` then turns
-the ranked qualities into AP.
+and calibration; never the labels; the privileged ``oracle`` alone is given the stored labels, and submits the
+best-labelled points). Its candidates go through NMS (0.02 m), each is assigned to the nearest true parcel
+surface (none farther than ``max_distance``: such a prediction scores 0), the 10 best per parcel are kept, and
+every kept candidate is re-scored online on the TRUE meshes, rebuilt from the stored asset ids and poses, by the
+shared suction scorer under the chosen quality definition (``--quality``, ``parcelpick_env/suction/quality.py``):
+``suctionnet`` (SuctionNet's evaluator: seal x wrench x collision), ``physical`` (the env's cup, real masses,
+Dex-Net's ring conditions), or ``paper_compat`` (SuctionNet's lenient label-time wrench; with ``--nms-radius
+0.00002`` also the NMS of the public Diffusion_Suction test script: how a 94-point AP can arise). ``AP+vis`` multiplies in each parcel's
+visibility, as the paper does for parcel scenes. ``eval.metrics`` turns the ranked qualities into AP.
 """
 
 from __future__ import annotations
@@ -31,18 +37,33 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dataset.storage import Record, ShardedDataset, open_dataset  # noqa: E402
-from eval.metrics import DEFAULT_MAX_K, DEFAULT_THRESHOLDS, aggregate_ap, scene_ap, select_predictions  # noqa: E402
+from eval.metrics import (  # noqa: E402
+    DEFAULT_MAX_K,
+    DEFAULT_THRESHOLDS,
+    SceneAP,
+    aggregate_ap,
+    scene_ap,
+    select_predictions,
+)
 from eval.stats import format_interval  # noqa: E402
 from eval.suctionnet_format import from_suctionnet, read_view, to_suctionnet, view_path, write_view  # noqa: E402
+from dataset.suctionnet.models import is_suctionnet_record  # noqa: E402
+from dataset.suctionnet.models import world_meshes as suctionnet_world_meshes  # noqa: E402
+from dataset.suctionnet.reader import ASSET_PREFIX as SUCTIONNET_ASSET_PREFIX  # noqa: E402
 from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
+from parcelpick_env.assets.parcel import ParcelAsset  # noqa: E402
 from parcelpick_env.cli import check_input_dir, check_output_path, check_policy, run_cli, usage_exit  # noqa: E402
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene  # noqa: E402
-from parcelpick_env.suction.config import SuctionConfig  # noqa: E402
-from parcelpick_env.suction.scorer import SuctionScorer  # noqa: E402
+from parcelpick_env.suction.quality import AP_DEFINITIONS, check_definition, definition_scorer, score_definition  # noqa: E402
 from parcelpick_env.suction.visibility import object_visibility  # noqa: E402
 from policies.base import Candidates, Policy  # noqa: E402
 from policies.postprocess import select_candidates  # noqa: E402
 
+# m: the NMS of the public Diffusion_Suction test script, which passes a 0.02 radius with coordinates in mm
+# (the report's paper-compatible row: --quality paper_compat --nms-radius 0.00002)
+PAPER_COMPAT_NMS_RADIUS = 2e-5
+# The AP's q = 1 ceiling and every AP figure's components: quality drops each channel in turn (docs/protocols.md).
+CHANNELS = ("seal", "wrench", "collision")
 # What the evaluator reads from each stored scene (dataset/annotate.py writes them).
 # The bin is the cell's known geometry, as in the env's info['workspace'], not ground truth about the pile.
 OBSERVATION_KEYS = ("points", "normals", "rgb", "depth", "intrinsics", "extrinsics", "bin_spec")
@@ -53,7 +74,9 @@ GROUND_TRUTH_KEYS = ("object_asset_ids", "object_categories", "object_poses", "b
 class APConfig:
     """Protocol constants; the defaults are SuctionNet's."""
 
+    quality: str = "suctionnet"  # AP_DEFINITIONS
     nms_radius: float = 0.02
+    max_distance: float = 0.005  # m: a prediction farther than this from every true parcel surface scores 0
     per_object: int = 10
     max_k: int = DEFAULT_MAX_K
     thresholds: tuple[float, ...] = DEFAULT_THRESHOLDS
@@ -62,8 +85,11 @@ class APConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        check_definition(self.quality, AP_DEFINITIONS, "APConfig.quality")
         if not self.nms_radius >= 0:
             raise ValueError(f"APConfig.nms_radius must be >= 0, got {self.nms_radius!r}")
+        if not self.max_distance > 0:
+            raise ValueError(f"APConfig.max_distance must be > 0, got {self.max_distance!r}")
         for name in ("per_object", "max_k", "candidates"):
             if getattr(self, name) < 1:
                 raise ValueError(f"APConfig.{name} must be >= 1, got {getattr(self, name)!r}")
@@ -83,20 +109,39 @@ def _require(record: Record, keys: Sequence[str], where: str) -> None:
 
 
 def scene_from_record(record: Record, library: AssetLibrary | None = None) -> Scene:
-    """The true pile of a stored scene: library meshes placed at the stored poses, and the bin."""
-    _require(record, GROUND_TRUTH_KEYS, "scene record")
-    if library is None:
-        library = AssetLibrary.default(int(record["library_seed"]))
-    asset_ids = np.asarray(record["object_asset_ids"]).reshape(-1)
-    poses = np.asarray(record["object_poses"], dtype=np.float64).reshape(-1, 7)
-    if len(asset_ids) != len(poses):
-        raise ValueError(f"scene record has {len(asset_ids)} asset ids but {len(poses)} poses")
-    parcels = [ParcelState(object_id=k, body_id=-1, asset=library.get(str(asset_id)), position=pose[:3],
-                           orientation=pose[3:], friction=float("nan"))
-               for k, (asset_id, pose) in enumerate(zip(asset_ids, poses))]
+    """The true pile of a stored scene: library meshes placed at the stored poses, and the bin. A view read from a
+    SuctionNet-1Billion tree (``dataset.suctionnet``) brings its own object models instead."""
+    asset_ids = np.asarray(record.get("object_asset_ids", [])).reshape(-1)
+    if is_suctionnet_record(record) and len(asset_ids) and str(asset_ids[0]).startswith(SUCTIONNET_ASSET_PREFIX):
+        parcels = _suctionnet_parcels(record)
+    else:
+        _require(record, GROUND_TRUTH_KEYS, "scene record")
+        if library is None:
+            library = AssetLibrary.default(int(record["library_seed"]))
+        poses = np.asarray(record["object_poses"], dtype=np.float64).reshape(-1, 7)
+        if len(asset_ids) != len(poses):
+            raise ValueError(f"scene record has {len(asset_ids)} asset ids but {len(poses)} poses")
+        parcels = [ParcelState(object_id=k, body_id=-1, asset=library.get(str(asset_id)), position=pose[:3],
+                               orientation=pose[3:], friction=float("nan"))
+                   for k, (asset_id, pose) in enumerate(zip(asset_ids, poses))]
     return Scene(parcels=parcels, bin=bin_from_record(record), seed=int(record.get("scene_seed", -1)),
                  layout=str(record.get("layout", "")), object_set=str(record.get("object_set", "")),
                  split=str(record.get("split", "")))
+
+
+def _suctionnet_parcels(record: Record) -> list[ParcelState]:
+    """SuctionNet's objects, which the asset library does not hold: each posed model is an asset at the identity
+    pose, with a unit mass at its surface centroid (SuctionNet has no masses: only the ``suctionnet`` and
+    ``paper_compat`` definitions apply to such scenes)."""
+    parcels = []
+    for k, (asset_id, mesh) in enumerate(zip(np.asarray(record["object_asset_ids"]).reshape(-1),
+                                             suctionnet_world_meshes(record))):
+        centroid = (mesh.triangles_center * mesh.area_faces[:, None]).sum(axis=0) / mesh.area
+        asset = ParcelAsset(asset_id=str(asset_id), category="suctionnet", split="test", mesh=mesh, mass=1.0,  # type: ignore[arg-type]
+                            com=centroid, rgba=(1.0, 1.0, 1.0, 1.0), extents=np.asarray(mesh.extents))
+        parcels.append(ParcelState(object_id=k, body_id=-1, asset=asset, position=np.zeros(3),
+                                   orientation=np.array([0.0, 0.0, 0.0, 1.0]), friction=float("nan")))
+    return parcels
 
 
 def bin_from_record(record: Record) -> BinSpec:
@@ -148,57 +193,98 @@ def _policy_num_points(policy: Policy) -> int | None:
     return None
 
 
+# The label set whose stored score the label oracle ranks by, per quality definition (docs/labels.md, "Label sets").
+LABEL_SET_OF_QUALITY = {"suctionnet": "paper", "paper_compat": "paper", "physical": "physical"}
+
+
+def label_score_key(record: Record, quality: str) -> str:
+    """The stored score matching ``quality``: the main ``score`` if its set is the one wanted, else ``score_<set>``
+    if the record carries that set too, else the main ``score`` (older records: the paper's labels)."""
+    wanted = LABEL_SET_OF_QUALITY[quality]
+    main = str(record["label_set"]) if "label_set" in record else "paper"
+    return "score" if main == wanted or f"score_{wanted}" not in record else f"score_{wanted}"
+
+
+def label_observation(record: Record, quality: str = "suctionnet") -> dict[str, np.ndarray]:
+    """The AP's privileged channel (``policies.oracle.LABEL_KEYS``): the stored labelled points and the stored label
+    score of the set matching ``quality``. Given to privileged policies only (the registered ``oracle``)."""
+    _require(record, ("points", "normals", "score"), "scene record")
+    return {"labelled_points": np.asarray(record["points"], dtype=np.float32),
+            "labelled_normals": np.asarray(record["normals"], dtype=np.float32),
+            "label_score": np.asarray(record[label_score_key(record, quality)], dtype=np.float32)}
+
+
 def predict_scene(policy: Policy, record: Record, config: APConfig, rng: np.random.Generator) -> Candidates:
     """The policy's checked candidates for one stored capture (world frame, descending score)."""
+    if getattr(policy, "privileged", False):
+        return _checked(policy.predict(label_observation(record, config.quality), {}, top_k=config.candidates), policy)
     num_points = config.num_points or _policy_num_points(policy)
     obs, info = observation_from_record(record, num_points, rng)
     return _checked(policy.predict(obs, info, top_k=config.candidates), policy)
 
 
-def evaluate_scene(policy: Policy, record: Record, config: APConfig, suction: SuctionConfig,
-                   rng: np.random.Generator, library: AssetLibrary | None = None) -> tuple[Any, dict[str, Any]]:
+def evaluate_scene(policy: Policy, record: Record, config: APConfig, rng: np.random.Generator,
+                   library: AssetLibrary | None = None) -> tuple[dict[str, SceneAP], dict[str, Any]]:
     """AP curves and a per-scene summary for one stored scene."""
-    return score_scene(predict_scene(policy, record, config, rng), record, config, suction, library)
+    return score_scene(predict_scene(policy, record, config, rng), record, config, library)
 
 
-def score_scene(candidates: Candidates, record: Record, config: APConfig, suction: SuctionConfig,
-                library: AssetLibrary | None = None) -> tuple[Any, dict[str, Any]]:
-    """The protocol on given candidates (a policy's, or read from a SuctionNet dump): NMS, assignment, the
-    per-object cap, re-scoring on the true meshes, and the precision curves."""
+def _visibility(record: Record, scene: Scene) -> np.ndarray:
+    if "object_visibility" in record:
+        return np.asarray(record["object_visibility"], dtype=np.float64)
+    depth = np.asarray(record["depth"])  # older records: recompute with the same rays the labels used
+    return np.asarray(object_visibility(scene.world_meshes(), np.asarray(record["intrinsics"], dtype=np.float64),
+                                        np.asarray(record["extrinsics"], dtype=np.float64), depth.shape[1],
+                                        depth.shape[0], occluders=scene.bin.meshes()), dtype=np.float64)
+
+
+def score_scene(candidates: Candidates, record: Record, config: APConfig,
+                library: AssetLibrary | None = None) -> tuple[dict[str, SceneAP], dict[str, Any]]:
+    """The protocol on given candidates (a policy's, or read from a SuctionNet dump): NMS, assignment (with the
+    distance cutoff), the per-object cap, re-scoring on the true meshes under ``config.quality``, and the precision
+    curves. Curves: ``"AP"`` (seal x wrench x collision), ``"AP+vis"`` (times visibility), ``"ceiling"`` (q = 1 on
+    every slot the protocol can keep), and ``"without_<channel>"`` (that channel left out: what it costs)."""
     kept = select_candidates(candidates.points, candidates.normals, candidates.scores, top_k=len(candidates),
                              nms_radius=config.nms_radius)
-
     scene = scene_from_record(record, library)
-    scorer = SuctionScorer.from_scene(scene, suction)
-    object_ids, _ = scorer.nearest_object(kept.points)
+    scorer = definition_scorer(config.quality, scene)
+    object_ids, distances = scorer.nearest_object(kept.points)
     chosen = select_predictions(kept.points, kept.normals, kept.scores, object_ids, per_object=config.per_object)
     categories = np.asarray(record["object_categories"]).reshape(-1).astype(str)
-    if "object_visibility" in record:
-        visibility = np.asarray(record["object_visibility"], dtype=np.float64)
-    else:  # older records: recompute with the same rays the labels used
-        depth = np.asarray(record["depth"])
-        visibility = object_visibility(scene.world_meshes(), np.asarray(record["intrinsics"], dtype=np.float64),
-                                       np.asarray(record["extrinsics"], dtype=np.float64),
-                                       depth.shape[1], depth.shape[0], occluders=scene.bin.meshes())
+    channels = {name: np.zeros(len(chosen), dtype=np.float32) for name in CHANNELS + ("visibility",)}
+    on_surface = np.zeros(len(chosen), dtype=np.float32)
     if len(chosen):
-        quality = scorer.score(chosen.points, chosen.normals, chosen.object_ids, visibility=visibility)
-        totals = quality.total
-        components = {name: float(getattr(quality, name).mean()) for name in ("seal", "wrench", "collision",
-                                                                               "visibility")}
-    else:  # nothing proposed: every P@k is 0
-        totals, components = np.zeros(0, dtype=np.float32), {}
-    curves = scene_ap(chosen.scores, totals, categories=categories[chosen.object_ids],
-                      scene_categories=list(categories), thresholds=config.thresholds, max_k=config.max_k)
+        quality = score_definition(config.quality, scorer, chosen.points, chosen.normals, chosen.object_ids,
+                                   visibility=_visibility(record, scene))
+        channels = {name: getattr(quality, name) for name in channels}
+        on_surface = (distances[chosen.index] <= config.max_distance).astype(np.float32)
+    q = on_surface * channels["seal"] * channels["wrench"] * channels["collision"]
+    variants = {"AP": q, "AP+vis": q * channels["visibility"]}
+    for name in CHANNELS:
+        variants[f"without_{name}"] = on_surface * np.prod([channels[c] for c in CHANNELS if c != name], axis=0)
+    curves = {name: scene_ap(chosen.scores, values, categories=categories[chosen.object_ids],
+                             scene_categories=list(categories), thresholds=config.thresholds, max_k=config.max_k)
+              for name, values in variants.items()}
+    curves["ceiling"] = ceiling_ap(len(categories), config)
     summary = {
         "num_objects": int(len(categories)),
         "num_candidates": int(len(candidates)),
         "num_after_nms": int(len(kept)),
         "num_scored": int(len(chosen)),
-        "AP": 100.0 * float(curves.precision.mean()),
-        "mean_quality": float(totals.mean()) if len(totals) else 0.0,
-        "mean_components": components,
+        "num_off_surface": int(len(chosen) - on_surface.sum()),
+        "AP": 100.0 * float(curves["AP"].precision.mean()),
+        "AP+vis": 100.0 * float(curves["AP+vis"].precision.mean()),
+        "mean_quality": float(q.mean()) if len(q) else 0.0,
+        "mean_components": {name: float(v.mean()) for name, v in channels.items()} if len(chosen) else {},
     }
     return curves, summary
+
+
+def ceiling_ap(num_objects: int, config: APConfig) -> SceneAP:
+    """The q = 1 ceiling of one scene: ``per_object`` perfect predictions on each of its parcels, and no more (the
+    protocol keeps no more), so P@k = min(k, per_object * parcels) / k."""
+    slots = config.per_object * num_objects
+    return scene_ap(np.ones(slots), np.ones(slots), thresholds=config.thresholds, max_k=config.max_k)
 
 
 def _open(data_dir: str | os.PathLike) -> ShardedDataset:
@@ -219,9 +305,12 @@ def evaluate_ap(policy: Policy | str | None, data_dir: str | os.PathLike, scenes
     ``policy`` is a Policy or a registered name; or None with ``predictions_dir``, a SuctionNet-format dump
     (``eval.suctionnet_format``) whose per-view predictions are scored instead, the best ``config.candidates``
     of each view, as a policy is asked for. ``dump_dir`` writes every scene's predictions in that format.
-    Keys: everything ``aggregate_ap`` returns (``AP``, ``AP0.4``, ``AP0.8``, ``top1_*``, ``intervals``,
-    ``per_scene``, ``per_category``, ...), plus ``policy``, ``data``, ``split``, ``config``, ``seconds`` and
-    ``scenes`` (one summary per scene, with its stored ``index``, the unit paired comparisons match on).
+    Keys: everything ``aggregate_ap`` returns for the quality without visibility (``AP``, ``AP0.4``, ``AP0.8``,
+    ``top1_*``, ``intervals``, ``per_scene``, ``per_category``, ...); ``AP+vis`` and ``with_visibility`` (the same
+    figures with visibility multiplied in); ``ceiling`` (the figures at q = 1 on every slot the protocol keeps);
+    ``channel_cost`` (AP with each channel left out, minus AP: what it costs); plus ``quality``, ``policy``,
+    ``data``, ``split``, ``config``, ``seconds`` and ``scenes`` (one summary per scene, with its stored ``index``,
+    the unit paired comparisons match on).
     """
     if (policy is None) == (predictions_dir is None):
         raise ValueError("evaluate_ap needs exactly one of a policy and predictions_dir")
@@ -234,8 +323,6 @@ def evaluate_ap(policy: Policy | str | None, data_dir: str | os.PathLike, scenes
         total = len(store) if scenes is None else min(int(scenes), len(store))
         if total < 1:
             raise ValueError(f"nothing to evaluate: {data_dir} holds {len(store)} scenes, asked for {scenes}")
-        suction_fields = store.config.get("suction")
-        suction = SuctionConfig(**suction_fields) if isinstance(suction_fields, dict) else SuctionConfig()
         split = str(store.config.get("split") or "test")
         per_scene, summaries = [], []
         started = time.perf_counter()
@@ -254,7 +341,7 @@ def evaluate_ap(policy: Policy | str | None, data_dir: str | os.PathLike, scenes
                                         read.scores[: config.candidates])
             if dump_dir is not None:
                 write_view(view_path(dump_dir, index, split), to_suctionnet(candidates, extrinsics))
-            curves, summary = score_scene(candidates, record, config, suction)
+            curves, summary = score_scene(candidates, record, config)
             summary.update(index=index, seconds=time.perf_counter() - t0)
             per_scene.append(curves)
             summaries.append(summary)
@@ -263,7 +350,15 @@ def evaluate_ap(policy: Policy | str | None, data_dir: str | os.PathLike, scenes
                       f"{summary['seconds']:.1f} s)", file=sys.stderr)
     finally:
         store.close()
-    result = aggregate_ap(per_scene)
+    result = aggregate_ap([c["AP"] for c in per_scene])
+    with_vis = aggregate_ap([c["AP+vis"] for c in per_scene])
+    result["with_visibility"] = _headline(with_vis, per_scene=True)
+    result["AP+vis"] = with_vis["AP"]
+    result["intervals"]["AP+vis"] = with_vis["intervals"]["AP"]
+    result["ceiling"] = _headline(aggregate_ap([c["ceiling"] for c in per_scene]))
+    result["channel_cost"] = {name: aggregate_ap([c[f"without_{name}"] for c in per_scene])["AP"] - result["AP"]
+                              for name in CHANNELS}
+    result["quality"] = config.quality
     name = policy.name if policy is not None else PREDICTIONS_PREFIX + str(predictions_dir)
     result.update(policy=name, data=str(data_dir), split=store.config.get("split"),
                   config=dataclasses.asdict(config),
@@ -273,21 +368,32 @@ def evaluate_ap(policy: Policy | str | None, data_dir: str | os.PathLike, scenes
     return result
 
 
+def _headline(aggregate: dict[str, Any], per_scene: bool = False) -> dict[str, Any]:
+    """The scalar figures and their intervals of an ``aggregate_ap`` result (and its per-scene values if asked)."""
+    keys = [k for k, v in aggregate.items() if isinstance(v, float)] + ["num_scenes", "intervals"]
+    return {k: aggregate[k] for k in keys + (["per_scene"] if per_scene else [])}
+
+
 def format_table(result: dict[str, Any]) -> str:
     """Markdown table: overall and per category, in percent."""
-    columns = [("AP", "AP"), ("AP0.4", "AP0.4"), ("AP0.8", "AP0.8"), ("top1_AP", "Top-1 AP"),
-               ("top1_AP0.4", "Top-1 AP0.4"), ("top1_AP0.8", "Top-1 AP0.8"), ("num_scenes", "scenes")]
-    lines = [f"Offline AP of {result.get('policy', '?')} on {result.get('data', '?')}; [95% bootstrap interval "
-             "over scenes]", "",
+    columns = [("AP", "AP"), ("AP0.8", "AP0.8"), ("AP0.4", "AP0.4"), ("AP+vis", "AP+vis"), ("top1_AP", "Top-1 AP"),
+               ("top1_AP0.8", "Top-1 AP0.8"), ("top1_AP0.4", "Top-1 AP0.4"), ("num_scenes", "scenes")]
+    lines = [f"Offline AP of {result.get('policy', '?')} on {result.get('data', '?')}, quality "
+             f"`{result.get('quality', '?')}`; [95% bootstrap interval over scenes]", "",
              "| subset | " + " | ".join(title for _, title in columns) + " |",
              "|---|" + "---|" * len(columns)]
     rows = [("overall", result)] + list(result.get("per_category", {}).items())
+    if "ceiling" in result:
+        rows.append(("q = 1 ceiling", result["ceiling"]))
     for name, row in rows:
         intervals = row.get("intervals", {})
         cells = [str(row.get(key, "-")) if key == "num_scenes" else
                  (format_interval(intervals[key]) if key in intervals else f"{row[key]:.2f}" if key in row else "-")
                  for key, _ in columns]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if "channel_cost" in result:
+        costs = ", ".join(f"{name} {-cost:+.2f}" for name, cost in result["channel_cost"].items())
+        lines += ["", f"What each channel costs (AP with it, minus AP without it): {costs}"]
     return "\n".join(lines)
 
 
@@ -301,7 +407,15 @@ def _make_policy(name: str, checkpoint: str | None) -> Policy:
 def build_parser() -> argparse.ArgumentParser:
     d = APConfig()
     p = argparse.ArgumentParser(prog="python -m eval.ap", description=__doc__.split("\n\n")[0])
-    p.add_argument("--policy", default=None, help="registered policy name (policies/registry.py)")
+    p.add_argument("--policy", default=None, help="registered policy name (policies/registry.py); 'oracle' is the "
+                   "label oracle (the best stored labels)")
+    p.add_argument("--quality", default=d.quality, choices=AP_DEFINITIONS,
+                   help="what a good suction is (docs/protocols.md): SuctionNet's evaluator, the env's physics, or "
+                   "the paper-compatible row")
+    p.add_argument("--nms-radius", type=float, default=d.nms_radius,
+                   help=f"m (SuctionNet: 0.02; the public Diffusion_Suction script in effect {PAPER_COMPAT_NMS_RADIUS})")
+    p.add_argument("--max-distance", type=float, default=d.max_distance,
+                   help="m: predictions farther than this from every true surface score 0")
     p.add_argument("--predictions", type=Path, default=None,
                    help="score a SuctionNet-format dump (<dir>/<split>/scene_XXXX/...) instead of a policy")
     p.add_argument("--dump", type=Path, default=None,
@@ -332,7 +446,9 @@ def main(argv: list[str] | None = None) -> int:
             check_output_path(args.out, "--out")
         if args.dump is not None:
             check_output_path(args.dump, "--dump", directory=True)
-        config = APConfig(candidates=args.candidates, num_points=args.num_points, seed=args.seed)
+        config = APConfig(quality=args.quality, nms_radius=args.nms_radius, max_distance=args.max_distance,
+                          candidates=args.candidates,
+                          num_points=args.num_points, seed=args.seed)
         policy = None if args.policy is None else check_policy(args.policy, args.checkpoint)
     except ValueError as exc:  # UsageError from the checks, or a bad APConfig field
         usage_exit(parser.prog, exc)

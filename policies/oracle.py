@@ -14,7 +14,8 @@ How it picks, per parcel, on the true meshes:
    hit triangle's normal, facing the probe, its outward normal. A parcel with no admissible top candidate
    (one standing on end, or leaning on a wall) is probed again along ``side_tilts_deg`` from vertical at
    ``side_azimuths`` headings, aimed at its COM: the uncovered side faces and ends.
-2. Predict the cell's own verdict for every candidate (``predicted_grasp``), as physics will reach it:
+2. Predict the cell's own verdict for every candidate (the ``physical`` definition, ``SuctionScorer.physical``,
+   ``parcelpick_env/suction/physical.py``), as physics will reach it:
    the cup comes down along ``-n`` and rests on the parcel's convex hull (what pybullet collides), so the
    bellows ``contact_seal`` is judged at that seat on the true mesh (a wrinkled mailer's valley under its
    hull is a real gap); a seat on another parcel's hull means the cup lands there instead (rejected).
@@ -29,11 +30,12 @@ How it picks, per parcel, on the true meshes:
    before tilted ones: the cell picks top-down, and a tilted approach loads the lip in shear and sends
    the arm to awkward poses. Then rank the parcels highest first (tops within ``height_band`` tie, and
    then the one nearest the bin centre comes first: the mount reaches the middle most easily); within a
-   parcel, the smallest lever arm (horizontal distance to the COM) first. Above all these, parcels not
-   yet tried come first (a parcel whose pick failed, ``info['outcome']``, goes behind the untried ones
-   for the rest of the episode), then free parcels before pinned ones (another parcel lies on them,
-   ``pinned_parcels``), then parcels no neighbour touches over their upper half (``leaned_on``), then
-   robust seals before ones within ``seal_margin`` of the threshold.
+   parcel, the smallest lever arm (horizontal distance to the COM) first. Above all these, free parcels
+   come before pinned ones (another parcel's hull lies on them or hangs over their footprint anywhere,
+   ``pinned_parcels``: lifting them lifts or strikes it, so they wait even behind a parcel whose pick
+   failed), then parcels not yet tried (a parcel whose pick failed, ``info['outcome']``, goes behind the
+   untried ones for the rest of the episode), then parcels no neighbour's hull touches over their upper
+   half (``leaned_on``), then robust seals before ones within ``seal_margin`` of the threshold.
 4. Reachability (``ArmReach``): the arm's own numpy IK, chained from the pre-grasp point through the
    contact up to the carrying height; the first ranked candidate it reaches is proposed, the unreachable
    ones checked go to the back (never out).
@@ -58,14 +60,12 @@ from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
 from parcelpick_env.robot.arm import ArmConfig
-from parcelpick_env.robot.gen3 import JOINTS, LINKS, SuctionToolSpec
+from parcelpick_env.robot.gen3 import JOINTS, SuctionToolSpec
 from parcelpick_env.robot.kinematics import Gen3Kinematics
-from parcelpick_env.robot.gen3 import RADII as GEN3_RADII
-from parcelpick_env.robot.planning import PlannerConfig
-from parcelpick_env.suction.collision import collision_scores
 from parcelpick_env.suction.config import SuctionConfig
-from parcelpick_env.suction.cup import CupSpec, suction_ring_ratios
+from parcelpick_env.suction.cup import CupSpec
 from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, ring_pattern, tangent_frames
+from parcelpick_env.suction.physical import PhysicalGrasp
 from parcelpick_env.suction.scorer import SuctionScorer, SuctionScores
 from parcelpick_env.suction.wrench import wrench_scores
 from policies.base import Candidates, Policy
@@ -73,9 +73,9 @@ from policies.base import Candidates, Policy
 STATE_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion", "parcel_com",
                                "parcel_mass", "parcel_asset_index", "parcel_extents", "bin")
 PROBE_ABOVE = 0.10  # m: probe rays start this far above the highest parcel
-WRIST_LENGTH = 0.15  # m of the arm's wrist above the tool flange that must clear the scene too
-WRIST_LINKS = ("spherical_wrist_2_link", "bracelet_link")  # the links on the tool axis in a top-down pose
-SEAT_ABOVE = 0.05  # m: the cup's descent onto the hull is traced from this far out along n
+# The AP evaluator's privileged channel (eval/ap.py --policy oracle): a stored scene's labelled points and their
+# stored label score, from which the label oracle submits the best-labelled points.
+LABEL_KEYS: tuple[str, ...] = ("labelled_points", "labelled_normals", "label_score")
 
 
 @dataclass(frozen=True)
@@ -91,6 +91,7 @@ class OracleConfig:
     # m: a parcel outside the library (no asset index) whose COM is this close to that of a failed pick counts
     # as tried; library parcels are recognised by their asset index (a dropped parcel lands elsewhere)
     retry_radius: float = 0.02
+    retry_angle_deg: float = 20.0  # a candidate this close to a failed pick (retry_radius) and its normal is that pick
     side_tilts_deg: tuple[float, ...] = (30.0, 55.0, 80.0)  # fallback probe directions from vertical
     # fallback approach tilts on a face: the cup comes in this far off the face normal, leaning away from the
     # nearest bin wall, so the tool and wrist clear a wall the parcel lies against (the bellows absorbs the
@@ -99,6 +100,10 @@ class OracleConfig:
     side_azimuths: int = 8  # headings per fallback tilt
     max_face_tilt_deg: float = 60.0  # faces steeper than this are never proposed: the tool and wrist (0.3 m)
     # would reach across the pile or into a wall, and the arm mounted beside the tote cannot hold them
+    # ... unless nothing else is admissible: the last parcels standing on edge against a wall (a slim carton, a
+    # mailer) often seal only on a side face; proposing it lets the cell try (its IK and planner decide) where
+    # the oracle would otherwise give up (invalid_action), the cause of every no-pick end on the stacked grid
+    last_resort_face_tilt_deg: float = 85.0
     seal_margin: float = 0.05  # a seal this close to the threshold is a last resort: physics moves it by ~0.01
     reach_checks: int = 40  # ranked candidates checked for reachability (IK along the pick) per decision
     reach_step: float = 0.05  # m between IK checks along the lift line
@@ -112,6 +117,9 @@ class OracleConfig:
                 raise ValueError(f"OracleConfig.{name} must be > 0, got {getattr(self, name)!r}")
         if not 0.0 <= self.max_tilt_deg <= 90.0:
             raise ValueError(f"OracleConfig.max_tilt_deg must be in [0, 90], got {self.max_tilt_deg!r}")
+        if not 0.0 <= self.max_face_tilt_deg <= self.last_resort_face_tilt_deg <= 90.0:
+            raise ValueError(f"OracleConfig needs 0 <= max_face_tilt_deg <= last_resort_face_tilt_deg <= 90, got "
+                             f"{self.max_face_tilt_deg!r}, {self.last_resort_face_tilt_deg!r}")
         if not 0.0 <= self.seal_floor <= self.min_seal <= 1.0:
             raise ValueError(f"OracleConfig needs 0 <= seal_floor <= min_seal <= 1, got {self.seal_floor!r}, "
                              f"{self.min_seal!r}")
@@ -208,78 +216,124 @@ def uncovered_top_points(truth: GroundTruth, offsets: np.ndarray, num_threads: i
     return points[good], normals[good] / norm[good], owner[keep][good]
 
 
-def pinned_parcels(truth: GroundTruth, offsets: np.ndarray, num_threads: int = 0) -> np.ndarray:
-    """(P,) bool: parcels another parcel lies on, anywhere over the probe rings about their COM vertical
-    (a downward probe passes through the parcel but first meets another one). Lifting such a parcel
-    drags the one on top of it, so it is picked after the free ones."""
-    count = len(truth.meshes)
-    if count == 0:
-        return np.zeros(0, dtype=bool)
-    top = max(float(m.bounds[1, 2]) for m in truth.meshes) + PROBE_ABOVE
-    owner = np.repeat(np.arange(count), len(offsets))
-    origins = np.empty((len(owner), 3))
-    origins[:, :2] = np.repeat(truth.coms[:, :2], len(offsets), axis=0) + np.tile(offsets, (count, 1))
-    origins[:, 2] = top
-    rays = o3d.core.Tensor.from_numpy(
-        np.concatenate([origins, np.tile([0.0, 0.0, -1.0], (len(owner), 1))], axis=1).astype(np.float32))
-    first = build_scene(truth.meshes).cast_rays(rays, nthreads=num_threads)["geometry_ids"].numpy().astype(np.int64)
-    first[first == O3D_INVALID_ID] = -1
-    pinned = np.zeros(count, dtype=bool)
-    for k in range(count):  # one small ray scene per parcel: does the probe pass through it at all?
-        rows = slice(k * len(offsets), (k + 1) * len(offsets))
-        through = np.isfinite(build_scene([truth.meshes[k]]).cast_rays(rays[rows], nthreads=num_threads)["t_hit"].numpy())
-        pinned[k] = bool(np.any(through & (first[rows] >= 0) & (first[rows] != k)))
-    return pinned
+@dataclass(frozen=True)
+class HullContacts:
+    """Where the parcels' collision hulls touch (within ``gap``), one row per touching surface sample: the
+    parcel whose surface it is (``parcel``), the other one (``other``), the point on ``parcel``'s hull and
+    that hull's outward face normal there. Physics collides these hulls, so these are the contacts the
+    pile rests on and the ones a rising parcel drags through."""
+
+    parcel: np.ndarray  # (C,)
+    other: np.ndarray  # (C,)
+    points: np.ndarray  # (C, 3)
+    normals: np.ndarray  # (C, 3)
 
 
-def leaned_on(truth: GroundTruth, gap: float = 0.005, samples: int = 200) -> np.ndarray:
-    """(P,) bool: parcels another parcel's hull comes within ``gap`` of over their upper half (above the
-    COM). There a neighbour leans on it or presses its side, and as the parcel rises the contact drags on
-    the lift with a lever about the cup (the lift drops seen on stacked piles were such side contacts).
-    Surface samples pushed ``gap`` outward are tested for lying inside any hull (its own hull is convex,
-    so they lie outside it)."""
-    count = len(truth.meshes)
-    if count < 2:
-        return np.zeros(count, dtype=bool)
+def hull_samples(hull: trimesh.Trimesh, spacing: float, seed: int) -> np.ndarray:
+    """Points on a convex hull's surface: its vertices, its edges every ``spacing`` and its faces at about
+    one point per ``spacing`` squared (random, seeded). Pile contacts are mostly a corner or an edge of one
+    hull on a face of the other, so vertices and edges are sampled exactly and faces only to catch flats."""
+    edges = hull.vertices[hull.edges_unique]
+    length = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
+    steps = np.maximum(1, np.ceil(length / spacing).astype(np.int64))
+    edge_of = np.repeat(np.arange(len(edges)), steps)
+    frac = (np.arange(len(edge_of)) - np.repeat(np.cumsum(steps) - steps, steps)) / steps[edge_of]
+    on_edges = edges[edge_of, 0] + frac[:, None] * (edges[edge_of, 1] - edges[edge_of, 0])
+    faces, _ = trimesh.sample.sample_surface(hull, max(1, int(hull.area / spacing**2)), seed=seed)
+    return np.concatenate([hull.vertices, on_edges, faces])
+
+
+def hull_contacts(truth: GroundTruth, gap: float = 0.004, spacing: float = 0.005,
+                  num_threads: int = 0) -> HullContacts:
+    """Every place two parcels' convex hulls come within ``gap`` (``HullContacts``).
+
+    For each pair whose bounds come that close, the surface samples of one (``hull_samples``) are queried for
+    their closest point on the other's hull (Open3D, exact point-to-triangle distance); both orders are
+    taken, so a corner of either on a face of the other is found. Edge samples ``spacing`` apart catch an
+    edge crossing an edge within ``spacing`` / 2 of the crossing.
+    """
     hulls = [m.convex_hull for m in truth.meshes]
-    points, owner = [], []
-    for k, hull in enumerate(hulls):
-        where, face = trimesh.sample.sample_surface(hull, samples, seed=k)
-        upper = where[:, 2] > truth.coms[k, 2]
-        points.append(where[upper] + gap * hull.face_normals[face[upper]])
-        owner.append(np.full(int(upper.sum()), k))
-    query = o3d.core.Tensor.from_numpy(np.concatenate(points).astype(np.float32))
-    inside = build_scene(hulls).compute_occupancy(query).numpy() > 0.5
+    count = len(hulls)
+    samples = [hull_samples(h, spacing, seed=k) for k, h in enumerate(hulls)]
+    lo = np.array([h.bounds[0] for h in hulls]).reshape(-1, 3)
+    hi = np.array([h.bounds[1] for h in hulls]).reshape(-1, 3)
+    rows: list[tuple[np.ndarray, ...]] = []
+    for k in range(count):
+        near = np.flatnonzero(np.all((lo <= hi[k] + gap) & (hi >= lo[k] - gap), axis=1))
+        near = near[near != k]
+        if len(near) == 0:
+            continue
+        query = np.concatenate([samples[j] for j in near])
+        other = np.repeat(near, [len(samples[j]) for j in near])
+        found = build_scene([hulls[k]]).compute_closest_points(
+            o3d.core.Tensor.from_numpy(query.astype(np.float32)), nthreads=num_threads)
+        closest = found["points"].numpy().astype(np.float64)
+        touch = np.linalg.norm(query - closest, axis=1) <= gap
+        if np.any(touch):
+            face = found["primitive_ids"].numpy().astype(np.int64)[touch]
+            rows.append((np.full(int(touch.sum()), k), other[touch], closest[touch], hulls[k].face_normals[face]))
+    if not rows:
+        return HullContacts(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+    return HullContacts(*(np.concatenate(parts) for parts in zip(*rows)))
+
+
+# A contact on a parcel's hull face tilted less than 60 deg from level bears another parcel's weight from above.
+PINNED_NORMAL_Z = 0.5
+FOOTPRINT_SPACING = 0.01  # m between the downward probes over a parcel's footprint
+
+
+def overhung_parcels(truth: GroundTruth, spacing: float = FOOTPRINT_SPACING, num_threads: int = 0) -> np.ndarray:
+    """(P,) bool: parcels with another parcel's hull anywhere above them: a downward probe on a grid over the
+    parcel's whole footprint (``spacing``) that passes through its hull meets another hull first. The lift
+    raises a parcel straight up through the prism above its footprint, so it strikes or carries whatever
+    lies there, touching or not (a mailer 2 cm above a carton's corner was struck 2 cm into the lift)."""
+    hulls = [m.convex_hull for m in truth.meshes]
+    count = len(hulls)
     out = np.zeros(count, dtype=bool)
-    out[np.unique(np.concatenate(owner)[inside])] = True
+    if count < 2:
+        return out
+    top = max(float(h.bounds[1, 2]) for h in hulls) + PROBE_ABOVE
+    origins, owner = [], []
+    for k, hull in enumerate(hulls):
+        (x0, y0), (x1, y1) = hull.bounds[0, :2], hull.bounds[1, :2]
+        xs = np.arange(x0 + spacing / 2, x1, spacing)
+        ys = np.arange(y0 + spacing / 2, y1, spacing)
+        grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+        origins.append(np.column_stack([grid, np.full(len(grid), top)]))
+        owner.append(np.full(len(grid), k))
+    origin, owner_ = np.concatenate(origins), np.concatenate(owner)
+    rays = o3d.core.Tensor.from_numpy(
+        np.concatenate([origin, np.tile([0.0, 0.0, -1.0], (len(origin), 1))], axis=1).astype(np.float32))
+    first = build_scene(hulls).cast_rays(rays, nthreads=num_threads)["geometry_ids"].numpy().astype(np.int64)
+    first[first == O3D_INVALID_ID] = -1
+    for k in range(count):  # one small ray scene per parcel: does the probe pass through it at all?
+        rows = np.flatnonzero(owner_ == k)
+        through = np.isfinite(build_scene([hulls[k]]).cast_rays(rays[rows], nthreads=num_threads)["t_hit"].numpy())
+        out[k] = bool(np.any(through & (first[rows] >= 0) & (first[rows] != k)))
     return out
 
 
-@dataclass
-class PredictedGrasp:
-    """What the cell will find at each candidate, predicted on the true scene (``predicted_grasp``)."""
+def pinned_parcels(truth: GroundTruth, contacts: HullContacts | None = None, num_threads: int = 0) -> np.ndarray:
+    """(P,) bool: parcels another parcel lies on or hangs over, anywhere over their whole hull: a contact on
+    their upward-facing faces (normal within 60 deg of up, ``PINNED_NORMAL_Z``) or another hull in the prism
+    above their footprint (``overhung_parcels``). Lifting such a parcel lifts, drags or strikes the one on top,
+    so it is picked after the free ones. The whole hull counts: a tube whose far end, 14 cm from its centre of
+    mass, carried another parcel was dragged at 4 N and dropped on torsion (probes within 8 cm of the centre
+    of mass had missed it)."""
+    contacts = hull_contacts(truth, num_threads=num_threads) if contacts is None else contacts
+    out = overhung_parcels(truth, num_threads=num_threads)
+    out[np.unique(contacts.parcel[contacts.normals[:, 2] >= PINNED_NORMAL_Z])] = True
+    return out
 
-    seal: np.ndarray  # (N,) bellows contact seal where the cup comes to rest on the parcel's hull
-    ratios: np.ndarray  # (N, 6) Dex-Net ring ratios hanging still at that seal's pull (CONDITIONS order)
-    collision: np.ndarray  # (N,) 1 if the physical tool along n clears every hull, the bin and the floor
 
-    @property
-    def worst(self) -> np.ndarray:
-        return self.ratios.max(axis=1)
-
-
-def hull_seats(hulls: o3d.t.geometry.RaycastingScene, points: np.ndarray, normals: np.ndarray,
-               owner: np.ndarray, num_threads: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Where the lip comes to rest coming down along ``-n`` onto the parcels' convex hulls (what physics
-    collides), and whether that is the candidate's own parcel (another hull in the way: it is not)."""
-    origins = points + SEAT_ABOVE * normals
-    rays = np.concatenate([origins, -normals], axis=1).astype(np.float32)
-    hits = hulls.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=num_threads)
-    ids = hits["geometry_ids"].numpy().astype(np.int64)
-    t = hits["t_hit"].numpy().astype(np.float64)
-    own = (ids == owner) & np.isfinite(t)
-    tips = np.where(own[:, None], origins - np.where(own, t, 0.0)[:, None] * normals, points)
-    return tips, own
+def leaned_on(truth: GroundTruth, contacts: HullContacts | None = None) -> np.ndarray:
+    """(P,) bool: parcels another parcel's hull touches above their centre of mass. There a neighbour leans
+    on it or presses its side, and as the parcel rises the contact drags on the lift with a lever about the
+    cup (the lift drops seen on stacked piles were such side contacts)."""
+    contacts = hull_contacts(truth) if contacts is None else contacts
+    out = np.zeros(len(truth.meshes), dtype=bool)
+    out[np.unique(contacts.parcel[contacts.points[:, 2] > truth.coms[contacts.parcel, 2]])] = True
+    return out
 
 
 def leaned_approaches(points: np.ndarray, normals: np.ndarray, owner: np.ndarray, bin_centre: np.ndarray,
@@ -297,41 +351,22 @@ def leaned_approaches(points: np.ndarray, normals: np.ndarray, owner: np.ndarray
     return np.tile(points, (k, 1)), np.concatenate(out) if out else np.zeros((0, 3)), np.tile(owner, k)
 
 
-def predicted_grasp(truth: GroundTruth, points: np.ndarray, normals: np.ndarray, owner: np.ndarray,
-                    suction: SuctionConfig, cup: CupSpec) -> PredictedGrasp:
-    """The seal, the ring ratios at rest and the tool clearance the cell will meet at each candidate."""
-    hulls = build_scene([m.convex_hull for m in truth.meshes] + truth.obstacles)  # what physics collides
-    tips, own = hull_seats(hulls, points, normals, owner, suction.num_threads)
-    contact = dataclasses.replace(suction, seal_model="bellows")  # the env judges the physical cup's seal
-    axes = -normals
-    seal = SuctionScorer(truth.meshes, truth.coms, truth.obstacles, contact).contact_seal(tips, axes, owner).quality
-    seal = np.where(own, seal, 0.0).astype(np.float32)
-    # the parcel hanging still: the cup pulls m g straight up, about the lip at the seat
-    force = np.outer(truth.masses[owner] * suction.gravity, [0.0, 0.0, 1.0])
-    torque = np.cross(truth.coms[owner] - tips, force)
-    f_z, t_z = np.sum(force * axes, axis=1), np.sum(torque * axes, axis=1)
-    lateral = np.linalg.norm(force - f_z[:, None] * axes, axis=1)
-    bending = np.linalg.norm(torque - t_z[:, None] * axes, axis=1)
-    zero = np.zeros(len(points))
-    ratios = suction_ring_ratios(np.stack([lateral, zero, f_z], axis=1), np.stack([bending, zero, t_z], axis=1),
-                                 cup.friction, suction.cup_radius, suction.material_k,
-                                 cup.rated_force(suction.cup_radius, seal))
-    collision = collision_scores(hulls, points, normals, physical_tool(suction))
-    return PredictedGrasp(seal=seal, ratios=np.asarray(ratios).reshape(len(points), -1), collision=collision)
+def truth_scorer(truth: GroundTruth, suction: SuctionConfig) -> SuctionScorer:
+    """The shared scorer on the true scene with the env's physical cup (``SuctionScorer.physical``)."""
+    return SuctionScorer(truth.meshes, truth.coms, truth.obstacles, dataclasses.replace(suction, seal_model="bellows"),
+                         masses=truth.masses)
 
 
-def physical_tool(suction: SuctionConfig, tool: SuctionToolSpec = SuctionToolSpec(),
-                  margin: float = PlannerConfig().margin) -> SuctionConfig:
-    """The env's cup config with the collision probe widened to the physical tool plus the clearance the
-    motion planner keeps: as wide as the cup's lip from the lip to the flange, then the widest of the
-    flange and the wrist links above it (the URDF's own figures; the labels' 10 mm probe is narrower than
-    the env's cup and ignores the flange and the wrist)."""
-    flange = tool.cup_length + tool.rod_length  # lip to flange, along the tool axis
-    wrist = max(tool.flange_radius, *(GEN3_RADII[LINKS.index(name)] for name in WRIST_LINKS))
-    return dataclasses.replace(suction, tool_radius=max(suction.tool_radius, suction.cup_radius) + margin,
-                               tool_far=max(suction.tool_far, flange),
-                               body_radius=max(suction.body_radius, wrist) + margin,
-                               body_near=flange, body_far=flange + WRIST_LENGTH)
+def best_labelled(obs: Mapping[str, Any], top_k: int) -> Candidates:
+    """The label oracle: a stored scene's ``top_k`` best-labelled points (``LABEL_KEYS``), best first; ties keep
+    the stored order. What the labels allow a perfect learner to submit, the ceiling of the AP tables."""
+    points = np.asarray(obs["labelled_points"], dtype=np.float32).reshape(-1, 3)
+    normals = np.asarray(obs["labelled_normals"], dtype=np.float32).reshape(-1, 3)
+    score = np.asarray(obs["label_score"], dtype=np.float32).reshape(-1)
+    if not len(points) == len(normals) == len(score):
+        raise ValueError(f"label oracle: {len(points)} labelled points, {len(normals)} normals, {len(score)} scores")
+    order = np.argsort(-score, kind="stable")[:top_k]
+    return Candidates(points=points[order], normals=normals[order], scores=score[order])
 
 
 class ArmReach:
@@ -388,19 +423,27 @@ class OraclePolicy(Policy):
         self.last_object_ids: np.ndarray | None = None
         self._aimed_com: tuple[int, np.ndarray] | None = None  # (asset index, COM) of the last pick's parcel
         self._failed_coms: list[tuple[int, np.ndarray]] = []  # the same, of parcels whose pick failed
+        self._aimed_pick: np.ndarray | None = None  # (6,) point and normal of the last proposed pick
+        self._failed_picks: list[np.ndarray] = []  # the same, of picks that failed
 
     def reset(self, seed: int | None = None) -> None:
         """A new episode: forget which picks failed."""
         self._aimed_com = None
         self._failed_coms = []
+        self._aimed_pick = None
+        self._failed_picks = []
 
     def _note_outcome(self, info: Mapping[str, Any]) -> None:
         """A failed attempt (``info['outcome']``, which every policy sees) puts that parcel behind the others,
-        so a deterministic oracle does not repeat a pick the cell could not do."""
+        so a deterministic oracle does not repeat a pick the cell could not do; and the failed approach itself
+        (point and normal) behind the parcel's other approaches, so the last parcel left is tried another way."""
         outcome = info.get("outcome")
         if self._aimed_com is not None and outcome is not None and outcome != "success":
             self._failed_coms.append(self._aimed_com)
+            if self._aimed_pick is not None:
+                self._failed_picks.append(self._aimed_pick)
         self._aimed_com = None
+        self._aimed_pick = None
 
     def _context(self, info: Mapping[str, Any] | None) -> tuple[SuctionConfig, AssetLibrary]:
         info = info or {}
@@ -415,9 +458,12 @@ class OraclePolicy(Policy):
             raise ValueError(f"top_k must be >= 1, got {top_k}")
         suction, library = self._context(info)
         self._note_outcome(info or {})
+        if all(key in obs for key in LABEL_KEYS):
+            return best_labelled(obs, top_k)
         truth = ground_truth(obs, library)
         points, normals, owner = uncovered_top_points(truth, self._offsets, suction.num_threads)
-        grasp = predicted_grasp(truth, points, normals, owner, suction, self.cup)
+        scorer = truth_scorer(truth, suction)
+        grasp = scorer.physical(points, normals, owner, self.cup)
         # parcels with no admissible top candidate: their uncovered side faces and ends
         bare = np.setdiff1d(np.arange(len(truth.meshes)), owner[self._admissible(grasp, normals)])
         if len(bare):
@@ -427,10 +473,9 @@ class OraclePolicy(Policy):
             found.append(leaned_approaches(points[faces], normals[faces], owner[faces], truth.bin_centre,
                                            self.config.lean_tilts_deg))
             side = tuple(np.concatenate([f[i] for f in found]) for i in range(3))
-            side_grasp = predicted_grasp(truth, *side, suction, self.cup)
+            side_grasp = scorer.physical(*side, self.cup)
             points, normals, owner = (np.concatenate([a, b]) for a, b in zip((points, normals, owner), side))
-            grasp = PredictedGrasp(*(np.concatenate([getattr(grasp, f.name), getattr(side_grasp, f.name)])
-                                     for f in dataclasses.fields(PredictedGrasp)))
+            grasp = PhysicalGrasp.concatenate([grasp, side_grasp])
         if len(points) == 0:
             raise ValueError("the oracle finds no uncovered face on any parcel")
         wrench = self._real_mass_wrench(points, normals, owner, truth, suction)
@@ -438,6 +483,8 @@ class OraclePolicy(Policy):
         scores = SuctionScores(seal=grasp.seal, wrench=wrench, collision=grasp.collision, visibility=visibility,
                                total=(grasp.seal * wrench * grasp.collision).astype(np.float32))
         order = self._rank(points, normals, owner, grasp, truth)
+        if len(order) == 0:  # nothing within max_face_tilt_deg: steeper side faces as a last resort
+            order = self._rank(points, normals, owner, grasp, truth, self.config.last_resort_face_tilt_deg)
         if len(order) == 0:
             raise ValueError("the oracle finds no admissible pick (seal, tool clearance and ring conditions all "
                              "hold) on any uncovered face")
@@ -448,16 +495,19 @@ class OraclePolicy(Policy):
         k = int(owner[order[0]])
         index = -1 if truth.asset_index is None else int(truth.asset_index[k])
         self._aimed_com = (index, truth.coms[k].copy())
+        self._aimed_pick = np.concatenate([points[order[0]], normals[order[0]]])
         rank = 1.0 - np.arange(len(order)) / len(order)
         return Candidates(points=points[order].astype(np.float32), normals=normals[order].astype(np.float32),
                           scores=rank.astype(np.float32))
 
-    def _admissible(self, grasp: PredictedGrasp, normals: np.ndarray) -> np.ndarray:
+    def _admissible(self, grasp: PhysicalGrasp, normals: np.ndarray, max_face_tilt_deg: float | None = None
+                    ) -> np.ndarray:
         """Candidates the cell can hold: the tool is free, the seal reaches ``seal_floor`` (the env's
         threshold), every ring condition holds the parcel hanging still, and the face is not steeper than
-        ``max_face_tilt_deg``."""
+        ``max_face_tilt_deg`` (the config's unless given)."""
         c = self.config
-        upright = normals[:, 2] >= np.cos(np.radians(c.max_face_tilt_deg))
+        tilt = c.max_face_tilt_deg if max_face_tilt_deg is None else max_face_tilt_deg
+        upright = normals[:, 2] >= np.cos(np.radians(tilt))
         return np.flatnonzero((grasp.seal >= c.seal_floor) & (grasp.collision > 0) & (grasp.worst < 1.0) & upright)
 
     def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth) -> np.ndarray:
@@ -503,15 +553,18 @@ class OraclePolicy(Policy):
                                       real)
         return out
 
-    def _rank(self, points: np.ndarray, normals: np.ndarray, owner: np.ndarray, grasp: PredictedGrasp,
-              truth: GroundTruth) -> np.ndarray:
-        """Indices of the admissible candidates: parcels not yet tried before tried ones, free parcels
-        before pinned ones (``pinned_parcels``), robust seals before ones within ``seal_margin`` of the
-        threshold; then sound picks
-        (seal at least ``min_seal``, ring ratios within the carry's load target) before weaker ones, level
-        candidates before tilted ones, highest parcels first, central ones first, and small lever arms first."""
+    def _rank(self, points: np.ndarray, normals: np.ndarray, owner: np.ndarray, grasp: PhysicalGrasp,
+              truth: GroundTruth, max_face_tilt_deg: float | None = None) -> np.ndarray:
+        """Indices of the admissible candidates: free parcels before pinned ones (``pinned_parcels``; a
+        parcel dropped back onto another must come off it first, even though its pick failed), parcels not
+        yet tried before tried ones, approaches not yet failed before failed ones (a point within
+        ``retry_radius`` and ``retry_angle_deg`` of a failed pick), parcels not leaned on (``leaned_on``)
+        first, robust seals before ones
+        within ``seal_margin`` of the threshold; then sound picks (seal at least ``min_seal``, ring ratios
+        within the carry's load target) before weaker ones, level candidates before tilted ones, highest
+        parcels first, central ones first, and small lever arms first."""
         c = self.config
-        admissible = self._admissible(grasp, normals)
+        admissible = self._admissible(grasp, normals, max_face_tilt_deg)
         if len(admissible) == 0:
             return admissible
         parcels = owner[admissible]
@@ -525,10 +578,15 @@ class OraclePolicy(Policy):
         indices = np.full(len(truth.meshes), -1) if truth.asset_index is None else truth.asset_index
         for index, com in self._failed_coms:
             tried += (indices == index) if index >= 0 else (np.linalg.norm(truth.coms - com, axis=1) < c.retry_radius)
-        pinned = pinned_parcels(truth, self._offsets)
-        leaned = leaned_on(truth)
+        repeated = np.zeros(len(admissible), dtype=np.int64)  # approaches that already failed
+        for failed in self._failed_picks:
+            repeated += ((np.linalg.norm(points[admissible] - failed[:3], axis=1) < c.retry_radius)
+                         & (normals[admissible] @ failed[3:] > np.cos(np.radians(c.retry_angle_deg))))
+        contacts = hull_contacts(truth)
+        pinned = pinned_parcels(truth, contacts)
+        leaned = leaned_on(truth, contacts)
         sound = (grasp.seal[admissible] >= c.min_seal) & (grasp.worst[admissible] <= self.load_target)
         marginal = grasp.seal[admissible] < c.seal_floor + c.seal_margin
         # np.lexsort sorts by the last key first
         return admissible[np.lexsort((lever, centrality[parcels], -tier[parcels], ~level, ~sound, marginal,
-                                      leaned[parcels], pinned[parcels], tried[parcels]))]
+                                      leaned[parcels], repeated, tried[parcels], pinned[parcels]))]

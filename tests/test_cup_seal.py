@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from meshes import box, horizontal_cylinder, tilted_plane
 from parcelpick_env.assets.generator import generate_parcel
 from parcelpick_env.suction import scorer as scorer_module
 from parcelpick_env.suction.config import CELL_CUP_RADIUS, BellowsCup, SuctionConfig
@@ -27,9 +28,6 @@ DOWN = np.array([0.0, 0.0, -1.0])
 def taper(u: float) -> float:
     return max(0.0, 1.0 - u * u)
 
-
-def box(extents, centre) -> trimesh.Trimesh:
-    return trimesh.creation.box(extents=extents, transform=trimesh.transformations.translation_matrix(centre))
 
 
 def scorer_for(mesh: trimesh.Trimesh, config: SuctionConfig = BELLOWS) -> SuctionScorer:
@@ -48,15 +46,6 @@ def reason(seal: ContactSeal) -> str:
     return str(seal.reason_names()[0])
 
 
-def tilted_plane(degrees: float) -> trimesh.Trimesh:
-    """A 30 cm slab whose top, through the origin, is z = -x tan(theta)."""
-    slab = box((0.3, 0.3, 0.05), (0, 0, -0.025))
-    return slab.apply_transform(trimesh.transformations.rotation_matrix(np.radians(degrees), (0, 1, 0)))
-
-
-def horizontal_cylinder(radius: float) -> trimesh.Trimesh:
-    mesh = trimesh.creation.cylinder(radius=radius, height=0.3, sections=512)
-    return mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 1, 0)))
 
 
 def top_z(mesh: trimesh.Trimesh, xy: np.ndarray) -> np.ndarray:

@@ -13,8 +13,13 @@ from eval.clearance import EpisodeResult, attempt_record, summarise
 from eval.metrics import aggregate_ap, scene_ap
 from eval.paper_results import TABLE_II_TOP50, TABLE_V
 from eval.stats import format_interval
+from eval.ap import PAPER_COMPAT_NMS_RADIUS, APConfig, ceiling_ap
 from eval.report import (TRAINED_VARIANTS, ReportConfig, ablation_table, compare, differences, evaluate_ablations,
                          evaluate_policy, failure_table, main, table_ii, write_report)
+from eval.report import orchestration
+from eval.report.config import CEILING, LABEL_ORACLE, PAPER_COMPAT_VARIANTS
+from eval.report.markdown import render_markdown
+from eval.report.tables import channel_cost_table, paper_compat_sentences, paper_compat_table
 from eval.stats import TIE
 from policies import registry
 from policies.base import Policy
@@ -50,7 +55,7 @@ def _entry(name: str, label: str, ap=None, clearance=None, status="ok", reason=N
 @pytest.fixture()
 def report(tmp_path: Path) -> dict:
     config = ReportConfig(test_data=str(tmp_path), objects=("rectangular",), layouts=("scattered",),
-                          out=str(tmp_path / "RESULTS.md"))
+                          out=str(tmp_path / "RESULTS.md"), label_physics=str(tmp_path / "absent.json"))
     missing = [{"name": v.name, "kind": "trained", "description": v.description, "paper": list(v.paper) if v.paper else None,
                 "checkpoint": f"runs/ablations/{v.name}/best.pt", "command": f"train {' '.join(v.train_flags)}",
                 "ap": None, "reason": None, "status": "not trained"} for v in TRAINED_VARIANTS]
@@ -161,7 +166,9 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
 
 
 @pytest.mark.parametrize("bad", [dict(policies=()), dict(episodes=0), dict(parcels=0), dict(ap_scenes=0),
-                                 dict(backend="spark"), dict(objects=("spheres",)), dict(ablation_steps=(0,))])
+                                 dict(backend="spark"), dict(objects=("spheres",)), dict(ablation_steps=(0,)),
+                                 dict(ap_qualities=("physical",)), dict(ap_qualities=("suctionnet", "bogus")),
+                                 dict(ap_qualities=("suctionnet", "suctionnet")), dict(ap_qualities=())])
 def test_config_rejects_bad_values(bad, tmp_path):
     with pytest.raises(ValueError):
         ReportConfig(test_data=str(tmp_path), **bad)
@@ -195,11 +202,15 @@ def test_cli_end_to_end_on_one_stored_scene(one_scene: Path, tmp_path: Path, cap
     data = one_scene
     out = tmp_path / "report" / "RESULTS.md"
     assert main(["--test-data", str(data), "--policies", "random", "nope", "--ap-scenes", "1", "--skip-clearance",
-                 "--skip-ablations", "--quiet", "--out", str(out)]) == 0
+                 "--skip-ablations", "--quiet", "--out", str(out), "--label-physics", str(tmp_path / "none.json")]) == 0
     md = out.read_text()
     dump = json.loads(out.with_suffix(".json").read_text())
     random_ap = dump["policies"]["random"]["ap"]
     assert random_ap["num_scenes"] == 1 and len(random_ap["precision_at_k"]) == random_ap["max_k"]
+    by_quality = dump["policies"]["random"]["ap_by_quality"]  # both definitions by default, ap the suctionnet one
+    assert {q: r["quality"] for q, r in by_quality.items()} == {"suctionnet": "suctionnet", "physical": "physical"}
+    assert random_ap["AP"] == by_quality["suctionnet"]["AP"]
+    assert "### `physical`" in md and md.count(f"| {CEILING} |") == 2
     assert f"| Random | {format_interval(random_ap['intervals']['AP'])} / – |" in md
     assert "nope (not available: ValueError: unknown policy 'nope'" in md
     assert (out.parent / "figures" / "precision_at_k.png").read_bytes()[:8] == PNG_MAGIC
@@ -282,3 +293,200 @@ def test_failure_anatomy_table_figure_and_provenance_are_in_the_report(report, t
     assert "## Checkpoint provenance" in md and "not recorded" in md
     assert "`python -m policies.cao.train --data data/baselines_train" in md
     assert "## Paired comparisons with Diffusion-Suction" in md and "Diffusion-Suction − Cao et al." in md
+
+
+def _full_ap(qualities: list[list[float]], visibility: float, cost: dict[str, float], quality: str,
+             parcels: int = 3, nms_radius: float = 0.02) -> dict:
+    """What evaluate_ap returns, from hand-made qualities: AP, AP+vis (each quality times ``visibility``), the
+    q = 1 ceiling of ``parcels`` parcels a scene, the channel costs, and the scene indices."""
+    result = _ap(qualities)
+    with_vis = _ap([[q * visibility for q in scene] for scene in qualities])
+    ceiling = aggregate_ap([ceiling_ap(parcels, APConfig())] * len(qualities))
+    result["AP+vis"], result["intervals"]["AP+vis"] = with_vis["AP"], with_vis["intervals"]["AP"]
+    result["with_visibility"] = with_vis
+    result["ceiling"] = {k: v for k, v in ceiling.items() if isinstance(v, float) or k in ("num_scenes", "intervals")}
+    result.update(channel_cost=cost, quality=quality, policy="x", data="d",
+                  config={"quality": quality, "nms_radius": nms_radius},
+                  scenes=[{"index": i, "seconds": 0.5} for i in range(len(qualities))])
+    return result
+
+
+ORACLE_Q = [[1.0, 0.9, 0.8, 0.7], [0.9, 0.9, 0.6], [1.0, 0.5]]
+
+
+@pytest.fixture()
+def two_definitions(report: dict) -> dict:
+    """The label oracle and Diffusion-Suction under both definitions, and the paper-compatible rows."""
+    oracle = {"suctionnet": _full_ap(ORACLE_Q, 0.8, {"seal": 4.0, "wrench": 9.0, "collision": 1.0}, "suctionnet"),
+              "physical": _full_ap([[0.5, 0.4], [0.3, 0.9], [0.2]], 0.8, {"seal": 20.0, "wrench": 2.0,
+                                                                           "collision": 0.5}, "physical")}
+    diffusion = {"suctionnet": report["policies"]["diffusion"]["ap"],  # an older result: no AP+vis, no ceiling
+                 "physical": _full_ap([[0.3, 0.1], [0.2]], 0.9, {}, "physical", parcels=2)}
+    policies = {"oracle": {**_entry("oracle", "Oracle (privileged ceiling)", oracle["suctionnet"]),
+                           "ap_by_quality": oracle},
+                "diffusion": {**report["policies"]["diffusion"], "ap_by_quality": diffusion},
+                "cao": report["policies"]["cao"],  # no physical result: 'not measured'
+                "dexnet": report["policies"]["dexnet"]}
+    nms = _full_ap([[1.0] * 10] * 3, 0.8, {}, "suctionnet", nms_radius=PAPER_COMPAT_NMS_RADIUS)
+    wrench = _full_ap([[min(1.0, q + 0.1) for q in s] for s in ORACLE_Q], 0.8, {}, "paper_compat")
+    both = _full_ap([[1.0] * 10] * 3, 0.9, {}, "paper_compat", nms_radius=PAPER_COMPAT_NMS_RADIUS)
+    compat = [{"name": "oracle", "label": "Oracle (privileged ceiling)", "status": "ok", "reason": None, "errors": {},
+               "results": {"suctionnet": oracle["suctionnet"], "nms": nms, "wrench": wrench, "both": both}},
+              {"name": "diffusion", "label": "Diffusion-Suction", "status": "not available",
+               "reason": "no checkpoint", "results": {}, "errors": {}}]
+    config = {**report["config"], "ap_qualities": ["suctionnet", "physical"]}
+    return {**report, "config": config, "policies": policies, "paper_compat": compat}
+
+
+def _section(md: str, title: str) -> str:
+    """The markdown from the heading ``title`` to the next heading of any level."""
+    start = md.index(title)
+    rest = md[start + len(title):]
+    ends = [i for i in (rest.find("\n## "), rest.find("\n### ")) if i >= 0]
+    return rest[: min(ends)] if ends else rest
+
+
+def _rows(table: str) -> list[str]:
+    return [line for line in table.splitlines() if line.startswith("| ") and not line.startswith("| method")]
+
+
+def test_every_ap_table_has_the_label_oracle_and_a_last_ceiling_row(two_definitions: dict, tmp_path: Path):
+    md = render_markdown(two_definitions, {}, tmp_path / "RESULTS.md")
+    oracle = two_definitions["policies"]["oracle"]["ap_by_quality"]
+    ceiling = oracle["suctionnet"]["ceiling"]
+    assert ceiling["AP"] < 100.0  # three parcels a scene: 30 slots cannot fill the top 50
+    for quality, with_paper in (("suctionnet", True), ("physical", False)):
+        rows = _rows(_section(md, f"### `{quality}`"))
+        assert rows[0].startswith(f"| {LABEL_ORACLE} | {format_interval(oracle[quality]['intervals']['AP'])}")
+        assert rows[0].endswith(f" | {format_interval(oracle[quality]['intervals']['AP+vis'])} |")
+        assert rows[-1].startswith(f"| {CEILING} | {format_interval(ceiling['intervals']['AP'])}")
+        assert format_interval(ceiling["intervals"]["top1_AP"]) in rows[-1]
+        assert len(rows) == 5  # oracle, Diffusion-Suction, Cao et al., Dex-Net 3.0, ceiling
+        assert ("/ 94.42" in _section(md, f"### `{quality}`")) == with_paper  # the paper's numbers: suctionnet only
+    physical = _section(md, "### `physical`")
+    assert "this project's own definition" in md and "Cao et al. (not measured)" in physical
+    assert "Dex-Net 3.0 (not available: FileNotFoundError" in physical
+    diffusion = two_definitions["policies"]["diffusion"]["ap_by_quality"]["physical"]
+    assert f"| Diffusion-Suction | {format_interval(diffusion['intervals']['AP'])} |" in physical
+
+
+def test_table_ii_without_any_ceiling_still_prints_the_ceiling_row(report: dict):
+    table = table_ii(report["policies"], "physical")
+    assert _rows(table)[-1].startswith(f"| {CEILING} | – |")
+    assert all("/" not in row.split("|", 2)[2] for row in _rows(table))  # no paper column off suctionnet
+
+
+def test_channel_costs_of_the_label_oracle_are_the_negated_channel_cost(two_definitions: dict):
+    policies = two_definitions["policies"]
+    table = channel_cost_table(policies, ("suctionnet", "physical"))
+    ap = policies["oracle"]["ap_by_quality"]["suctionnet"]
+    vis = ap["AP+vis"] - ap["AP"]
+    assert vis < 0  # visibility 0.8 on every parcel lowers it
+    assert f"| `suctionnet` | {format_interval(ap['intervals']['AP'])} | -4.00 | -9.00 | -1.00 | {vis:.2f} |" in table
+    assert "| `physical` |" in table and "| -20.00 | -2.00 | -0.50 |" in table
+    assert "the oracle was not in this report" in channel_cost_table({}, ("suctionnet",))
+
+
+def test_paper_compatible_table_and_its_sentences_come_from_the_numbers(two_definitions: dict, tmp_path: Path):
+    rows = two_definitions["paper_compat"]
+    table = paper_compat_table(rows)
+    results = rows[0]["results"]
+    for variant in PAPER_COMPAT_VARIANTS:
+        assert f"| {LABEL_ORACLE} | {variant.description} | {format_interval(results[variant.name]['intervals']['AP'])}"\
+            in table
+    assert "Diffusion-Suction | not available: no checkpoint |" in table
+    sentences = paper_compat_sentences(rows)
+    base = results["suctionnet"]["AP"]
+    for variant, line in zip(PAPER_COMPAT_VARIANTS[1:], sentences):
+        diff = results[variant.name]["AP"] - base
+        assert diff > 0 and f"raises its Top-50 AP from {base:.2f} to {results[variant.name]['AP']:.2f} " \
+                             f"({diff:+.2f} points; paired over the same scenes" in line
+        assert line.startswith(f"- {LABEL_ORACLE}, {variant.description}:")
+    assert "94.42" in sentences[-1]
+    md = render_markdown(two_definitions, {}, tmp_path / "RESULTS.md")
+    assert "## Paper-compatible (not a measure of picking)" in md and sentences[0] in md
+    lowered = {**rows[0], "results": {**results, "nms": results["suctionnet"], "suctionnet": results["nms"]}}
+    assert "lowers its Top-50 AP" in paper_compat_sentences([lowered])[0]
+
+
+def test_label_physics_section_reads_the_summary(two_definitions: dict, tmp_path: Path):
+    out = tmp_path / "results" / "RESULTS.md"
+    path = tmp_path / "results" / "label_physics.json"
+    md = render_markdown({**two_definitions, "label_physics": orchestration.read_label_physics(path)}, {}, out)
+    assert "## Labels vs physics\n\nNot measured" in md
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"picks": 3000, "auc": {"estimate": 0.874, "low": 0.85, "high": 0.9},
+                                "auc_by_layout": {"stacked": {"estimate": 0.8}},
+                                "confusion": {"precision": 0.7, "recall": 0.9, "hold_failure": 5, "fail_success": 2}}))
+    path.with_suffix(".png").write_bytes(PNG_MAGIC)
+    found = orchestration.read_label_physics(path)
+    assert found["auc"] == pytest.approx(0.874) and found["picks"] == 3000
+    md = render_markdown({**two_definitions, "label_physics": found}, {}, out)
+    assert "**0.874** [0.850, 0.900] (falls short of the goal of 0.9); by layout stacked 0.800" in md
+    assert "over 3000 random candidate picks" in md and "precision 0.700, recall 0.900" in md
+    assert "](label_physics.png)" in md
+    path.write_text(json.dumps({"picks": 3}))
+    assert "not an eval/label_physics.py summary" in render_markdown(
+        {**two_definitions, "label_physics": orchestration.read_label_physics(path)}, {}, out)
+    path.write_text("{not json")
+    assert "could not be read" in render_markdown(
+        {**two_definitions, "label_physics": orchestration.read_label_physics(path)}, {}, out)
+
+
+def test_each_quality_is_evaluated_and_the_paper_compatible_variants_are_the_right_protocols(tmp_path: Path,
+                                                                                             monkeypatch):
+    import eval.ap
+
+    calls = []
+
+    def fake_evaluate_ap(policy, data_dir, scenes=None, config=APConfig(), progress=False):
+        calls.append((policy.name, config.quality, config.nms_radius))
+        if config.quality == "physical" and policy.name == "random":
+            raise RuntimeError("physical broke")
+        return {"policy": policy.name, "quality": config.quality, "nms_radius": config.nms_radius,
+                **dict.fromkeys(("AP", "AP0.8", "AP0.4", "top1_AP", "top1_AP0.8", "top1_AP0.4", "AP+vis"), 1.0)}
+
+    monkeypatch.setattr(eval.ap, "evaluate_ap", fake_evaluate_ap)
+    config = ReportConfig(test_data=str(tmp_path), policies=("oracle", "random"), skip_clearance=True,
+                          progress=False)
+    entries = {name: orchestration.evaluate_policy_ap(name, config) for name in config.policies}
+    assert entries["oracle"]["ap"]["quality"] == "suctionnet"
+    assert entries["oracle"]["ap"] is entries["oracle"]["ap_by_quality"]["suctionnet"]
+    assert entries["oracle"]["ap_by_quality"]["physical"]["quality"] == "physical"
+    assert entries["random"]["ap_by_quality"]["physical"] is None
+    assert "physical broke" in entries["random"]["ap_errors"]["physical"] and entries["random"]["ap_error"] is None
+    assert "failed: RuntimeError: physical broke" in table_ii(entries, "physical")
+    calls.clear()
+    rows = orchestration.evaluate_paper_compat(config, entries)
+    assert [row["name"] for row in rows] == ["oracle"]  # random is not a paper-compatible method; diffusion absent
+    results = rows[0]["results"]
+    assert results["suctionnet"] is entries["oracle"]["ap"]  # (a) is the entry's own run, not run again
+    default_nms = APConfig().nms_radius
+    assert sorted(calls) == sorted([("oracle", "suctionnet", PAPER_COMPAT_NMS_RADIUS),
+                                    ("oracle", "paper_compat", default_nms),
+                                    ("oracle", "paper_compat", PAPER_COMPAT_NMS_RADIUS)])
+    assert (results["nms"]["quality"], results["nms"]["nms_radius"]) == ("suctionnet", PAPER_COMPAT_NMS_RADIUS)
+    assert (results["wrench"]["quality"], results["wrench"]["nms_radius"]) == ("paper_compat", default_nms)
+
+
+def test_clearance_reused_from_an_earlier_report_is_labelled_as_such(report, tmp_path: Path):
+    """--clearance-from: the earlier report's clearance fills each entry by policy name, a policy it lacks says so,
+    and the page names the source, its date and its settings; an unusable file is one clear error."""
+    earlier = tmp_path / "earlier.json"
+    earlier.write_text(json.dumps({"generated": "2026-11-30T10:00:00+00:00",
+                                   "config": {"episodes": 2, "parcels": 10, "seed": 0},
+                                   "policies": {"cao": {"clearance": _clearance(2, 4, 2, 4)}}}))
+    config = ReportConfig(test_data=str(tmp_path), clearance_from=str(earlier), out=str(tmp_path / "R.md"))
+    policies = {name: dict(entry, clearance=None) for name, entry in report["policies"].items() if name != "dexnet"}
+    orchestration.reuse_clearance(policies, orchestration.load_clearance_source(str(earlier)), config)
+    assert policies["cao"]["clearance"]["overall"]["successes"] == 2
+    assert policies["diffusion"]["clearance"] is None and "not in" in policies["diffusion"]["clearance_error"]
+    page = render_markdown({**report, "policies": policies, "config": asdict(config),
+                            "clearance_source": {"path": str(earlier), "generated": "2026-11-30T10:00:00+00:00",
+                                                 "episodes": 2, "parcels": 10, "seed": 0}}, {}, tmp_path / "R.md")
+    assert f"clearance **reused from `{earlier}`** (generated 2026-11-30T10:00:00+00:00; 10 parcels" in page
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ValueError, match="bad.json: not a readable report JSON"):
+        orchestration.load_clearance_source(str(tmp_path / "bad.json"))
+    with pytest.raises(ValueError, match="exclude each other"):
+        ReportConfig(test_data=str(tmp_path), clearance_from=str(earlier), skip_clearance=True)

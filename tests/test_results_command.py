@@ -69,7 +69,8 @@ def _fake_clearance(calls: Counter, interrupt_at: str | None):
 def _config(tmp_path: Path, bench_dir: Path) -> results.ResultsConfig:
     report = ReportConfig(test_data=str(tmp_path / "data"), policies=("diffusion", "cao"),
                           objects=("rectangular",), layouts=("scattered", "stacked"), episodes=2,
-                          out=str(tmp_path / "results" / "RESULTS.md"), progress=False)
+                          out=str(tmp_path / "results" / "RESULTS.md"), progress=False,
+                          label_physics=str(tmp_path / "results" / "label_physics.json"))
     return results.ResultsConfig(report=report, work=str(tmp_path / "work"), bench_dir=str(bench_dir))
 
 
@@ -84,23 +85,30 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     monkeypatch.setattr(orchestration, "evaluate_policy_ap", lambda name, cfg: calls.update([f"ap/{name}"])
                         or _fake_ap(name, cfg))
     monkeypatch.setattr(orchestration, "evaluate_ablations", lambda cfg, main_ap: calls.update(["ablations"]) or [])
+    monkeypatch.setattr(orchestration, "evaluate_paper_compat", lambda cfg, entries: calls.update(["paper_compat"])
+                        or [{"name": n, "label": e["label"], "status": "ok", "reason": None, "errors": {},
+                             "results": {"suctionnet": e["ap"], "nms": e["ap"]}} for n, e in entries.items()])
     monkeypatch.setattr(orchestration, "evaluate_policy_clearance", _fake_clearance(calls, "cao/rectangular-stacked"))
     cfg = _config(tmp_path, bench_dir)
     names = [p.name for p in results.plan(cfg)]
     assert names == ["data/test", "ap/diffusion", "ap/cao", "clearance/diffusion/rectangular-scattered",
                      "clearance/diffusion/rectangular-stacked", "clearance/cao/rectangular-scattered",
-                     "clearance/cao/rectangular-stacked", "ablations", "bench/bench_tiny"]
+                     "clearance/cao/rectangular-stacked", "paper_compat", "ablations", "bench/bench_tiny"]
     with pytest.raises(KeyboardInterrupt):
         results.regenerate(cfg, log=lambda _: None)
     first = Counter(calls)
     monkeypatch.setattr(orchestration, "evaluate_policy_clearance", _fake_clearance(calls, None))
     out = results.regenerate(cfg, log=lambda _: None)
     redone = calls - first
-    assert redone == {"cao/rectangular-stacked": 1, "ablations": 1}  # the interrupted cell and what came after
-    assert [n for n, s in out["status"].items() if s == "ran"] == ["clearance/cao/rectangular-stacked", "ablations",
-                                                                    "bench/bench_tiny"]
+    # the interrupted cell and what came after
+    assert redone == {"cao/rectangular-stacked": 1, "paper_compat": 1, "ablations": 1}
+    assert [n for n, s in out["status"].items() if s == "ran"] == ["clearance/cao/rectangular-stacked", "paper_compat",
+                                                                    "ablations", "bench/bench_tiny"]
     md = Path(out["paths"]["markdown"]).read_text()
     assert "### Cao et al." in md and "33.33 [" in md and "dropped: lift" in md  # 1/3 pooled, with its interval
+    # the paper-compatible rows of the methods it takes (Diffusion-Suction here, from its AP part)
+    assert "## Paper-compatible (not a measure of picking)" in md and "| Diffusion-Suction | (b) NMS at" in md
+    assert "## Labels vs physics\n\nNot measured" in md
     dump = json.loads(Path(out["paths"]["json"]).read_text())
     assert len(dump["policies"]["cao"]["clearance"]["episodes"]) == 4  # both cells, 2 episodes each
     assert "| x | 1 |" in (bench_dir / "RESULTS.md").read_text()
@@ -111,8 +119,17 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     assert page.count("keep me") == 1 and page.count(results.GENERATED_BEGIN) == 1 and page.count("| x | 1 |") == 1
 
 
+def test_make_results_tests_on_big_piles_under_both_definitions(tmp_path: Path):
+    args = results.TEST_DATA_ARGS
+    assert args[args.index("--parcels") + 1: args.index("--parcels") + 3] == ("10", "50")
+    assert args[args.index("--layout") + 1] == "random"  # stacked and scattered, drawn per scene
+    cfg = results.config_from_args(results.build_parser().parse_args(["--test-data", str(tmp_path)]))
+    assert cfg.test_scenes >= 50 and cfg.report.ap_qualities == ("suctionnet", "physical")
+
+
 def test_list_shows_done_and_todo(tmp_path: Path, capsys):
     assert results.main(["--test-data", str(tmp_path / "d"), "--work", str(tmp_path / "w"), "--policies", "random",
                          "--objects", "mixed", "--layouts", "stacked", "--skip-benchmarks", "--list"]) == 0
     listed = capsys.readouterr().out.splitlines()
+    # no paper_compat part: neither the label oracle nor Diffusion-Suction is asked for
     assert listed == ["todo  data/test", "todo  ap/random", "todo  clearance/random/mixed-stacked", "todo  ablations"]

@@ -72,11 +72,11 @@ def test_read_sorts_by_score_and_rejects_malformed_files(tmp_path):
 
 
 def test_a_dumped_policy_scores_the_same_when_read_back(tmp_path):
-    from test_ap import _FixedPolicy, _record, _tops_over_com
+    from test_ap import _FixedPolicy, _record, _tops_over
 
     record = _record()
     pick = np.random.default_rng(0).choice(len(record["points"]), 30, replace=False)
-    policy = _FixedPolicy(np.r_[_tops_over_com(record), record["points"][pick]],
+    policy = _FixedPolicy(np.r_[_tops_over(record), record["points"][pick]],
                           np.r_[np.tile([0, 0, 1.0], (2, 1)), record["normals"][pick]])  # 2 good picks, 30 others
     data = tmp_path / "data"
     data.mkdir()

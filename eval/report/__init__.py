@@ -1,5 +1,7 @@
-"""One report for every policy: offline AP (Table II), closed-loop clearance (Table V) and the
-Diffusion-Suction ablations (Tables III and IV), each beside the paper's numbers, with plots and a JSON dump.
+"""One report for every policy: offline AP (Table II, one table per quality definition, with the label oracle and
+the q = 1 ceiling; what each channel costs the oracle; the paper-compatible rows), the labels-vs-physics AUC,
+closed-loop clearance (Table V) and the Diffusion-Suction ablations (Tables III and IV), each beside the paper's
+numbers where the paper has them, with plots and a JSON dump.
 
     python -m eval.report --test-data data/test --episodes 10 --out results/RESULTS.md
 
@@ -32,19 +34,24 @@ from eval.report.figures import plot_clearance, plot_failures, plot_precision_at
 from eval.report.markdown import render_markdown, write_report
 from eval.report.orchestration import (
                                        evaluate_ablations,
+                                       evaluate_paper_compat,
                                        evaluate_policy,
                                        load_policy,
                                        provenance,
+                                       read_label_physics,
                                        run_report,
                                        train_command,
 )
 from eval.report.tables import (
                                        ablation_comparison_table,
                                        ablation_table,
+                                       channel_cost_table,
                                        comparison_table,
                                        differences,
                                        failure_table,
                                        outcome_table,
+                                       paper_compat_sentences,
+                                       paper_compat_table,
                                        provenance_table,
                                        table_ii,
                                        table_v,
@@ -59,8 +66,8 @@ from eval.report.variants import (
 
 __all__ = ["ABLATION_TRAIN_ARGS", "AP_METRICS", "DEFAULT_POLICIES", "DIFFUSION", "MAIN_TRAIN_ARGS", "MIN_AP_SCENES",
            "TRAINED_VARIANTS", "ReportConfig", "TrainedVariant", "ablation_comparison_table", "ablation_table",
-           "build_parser", "compare", "comparison_table", "comparisons_against", "differences", "evaluate_ablations",
-           "evaluate_policy", "failure_table", "label", "load_policy", "main", "outcome_table", "paired_ap",
-           "paired_rate", "plot_clearance", "plot_failures", "plot_precision_at_k", "provenance",
-           "provenance_table", "render_markdown", "run_report", "table_ii", "table_v", "train_args",
+           "build_parser", "channel_cost_table", "compare", "comparison_table", "comparisons_against", "differences", "evaluate_ablations",
+           "evaluate_paper_compat", "evaluate_policy", "failure_table", "label", "load_policy", "main", "outcome_table", "paired_ap",
+           "paired_rate", "paper_compat_sentences", "paper_compat_table", "plot_clearance", "plot_failures", "plot_precision_at_k", "provenance",
+           "provenance_table", "read_label_physics", "render_markdown", "run_report", "table_ii", "table_v", "train_args",
            "train_command", "write_report"]

@@ -7,10 +7,11 @@ import sys
 from pathlib import Path
 
 from eval.clearance import LAYOUTS, OBJECT_SETS
-from eval.report.config import DIFFUSION, ReportConfig
+from eval.report.config import DIFFUSION, HEADLINE_QUALITY, ReportConfig
 from eval.report.markdown import write_report
 from eval.report.orchestration import run_report
 from parcelpick_env.parallel import BACKENDS
+from parcelpick_env.suction.quality import AP_DEFINITIONS
 
 DESCRIPTION = ("One report for every policy: offline AP (Table II), closed-loop clearance (Table V) and the "
                "Diffusion-Suction ablations (Tables III and IV), each beside the paper's numbers, with bootstrap "
@@ -25,6 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policies", nargs="+", default=list(d.policies), help="registered policy names")
     p.add_argument("--ap-scenes", type=int, default=None,
                    help="evaluate only the first N test scenes (all when omitted)")
+    p.add_argument("--ap-qualities", nargs="+", default=list(d.ap_qualities), choices=AP_DEFINITIONS,
+                   help=f"quality definitions, one AP table each (docs/protocols.md); must include "
+                   f"{HEADLINE_QUALITY} (the paper's protocol)")
     p.add_argument("--episodes", type=int, default=d.episodes, help="clearance episodes per cell")
     p.add_argument("--parcels", type=int, default=d.parcels, help="parcels per clearance pile")
     p.add_argument("--objects", nargs="+", default=list(d.objects), choices=OBJECT_SETS)
@@ -36,7 +40,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=d.out, help="markdown report; the JSON dump goes beside it")
     p.add_argument("--figures", default=None, help="PNG folder (<out folder>/figures when omitted)")
     p.add_argument("--skip-clearance", action="store_true")
+    p.add_argument("--clearance-from", default=None, metavar="JSON",
+                   help="reuse the clearance results of an earlier report's JSON (labelled as reused) instead of "
+                   "re-running them")
     p.add_argument("--skip-ablations", action="store_true")
+    p.add_argument("--skip-paper-compat", action="store_true",
+                   help="no paper-compatible rows (the label oracle and Diffusion-Suction under the public "
+                   "script's NMS and SuctionNet's label-time wrench)")
+    p.add_argument("--label-physics", default=d.label_physics,
+                   help="eval/label_physics.py's JSON; its AUC is reported when the file exists")
     p.add_argument("--diffusion-checkpoint", default=None,
                    help="Diffusion-Suction weights (the shipped ones when omitted)")
     p.add_argument("--ablation-dir", default=d.ablation_dir, help="trained ablations: <dir>/<name>/best.pt")
@@ -55,10 +67,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"test data directory {args.test_data} does not exist")
     try:
         config = ReportConfig(test_data=args.test_data, policies=tuple(args.policies), ap_scenes=args.ap_scenes,
+                              ap_qualities=tuple(args.ap_qualities),
                               episodes=args.episodes, parcels=args.parcels, objects=tuple(args.objects),
                               layouts=tuple(args.layouts), seed=args.seed, workers=args.workers,
                               backend=args.backend, ray_address=args.ray_address, out=args.out, figures=args.figures,
-                              skip_clearance=args.skip_clearance, skip_ablations=args.skip_ablations,
+                              skip_clearance=args.skip_clearance, clearance_from=args.clearance_from,
+                              skip_ablations=args.skip_ablations,
+                              skip_paper_compat=args.skip_paper_compat, label_physics=args.label_physics,
                               diffusion_checkpoint=args.diffusion_checkpoint, ablation_dir=args.ablation_dir,
                               ablation_steps=tuple(args.ablation_steps), train_data=args.train_data,
                               train_args=args.train_args, progress=not args.quiet)

@@ -8,6 +8,7 @@ in that dict instead of stopping the other runs.
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import sys
 import traceback
 import warnings
@@ -17,7 +18,15 @@ from pathlib import Path
 from typing import Any
 
 from eval.paper_results import TABLE_IV_STEPS
-from eval.report.config import DIFFUSION, ReportConfig, label
+from eval.report.config import (
+    DIFFUSION,
+    HEADLINE_QUALITY,
+    PAPER_COMPAT_POLICIES,
+    PAPER_COMPAT_VARIANTS,
+    APVariant,
+    ReportConfig,
+    label,
+)
 from eval.report.variants import TRAINED_VARIANTS, TrainedVariant
 
 
@@ -50,31 +59,101 @@ def _guarded(what: str, fn: Callable[[], Any]) -> tuple[Any, str | None]:
         return None, _reason(exc)
 
 
-def _policy_ap(policy: Any, why: str | None, what: str, config: ReportConfig) -> tuple[Any, str | None]:
+def _ap_config(variant: APVariant | None):
+    """The eval.ap protocol of one (quality, NMS) variant (None: SuctionNet's), all else at APConfig's defaults."""
+    from eval.ap import APConfig
+
+    if variant is None:
+        return APConfig()
+    return APConfig(quality=variant.quality, **({} if variant.nms_radius is None else
+                                                 {"nms_radius": variant.nms_radius}))
+
+
+def _policy_ap(policy: Any, why: str | None, what: str, config: ReportConfig,
+               variant: APVariant | None = None) -> tuple[Any, str | None]:
     """(AP result, None), or (None, why) when the policy could not be built or its evaluation failed."""
     from eval.ap import evaluate_ap
 
     if policy is None:
         return None, why
     return _guarded(f"AP of {what}", lambda: evaluate_ap(policy, config.test_data, scenes=config.ap_scenes,
-                                                         progress=config.progress))
+                                                         config=_ap_config(variant), progress=config.progress))
 
 
 def _entry(name: str) -> dict[str, Any]:
     return {"name": name, "label": label(name), "status": "ok", "reason": None,
-            "ap": None, "ap_error": None, "clearance": None, "clearance_error": None}
+            "ap": None, "ap_error": None, "ap_by_quality": {}, "ap_errors": {},
+            "clearance": None, "clearance_error": None}
 
 
 def evaluate_policy_ap(name: str, config: ReportConfig) -> dict[str, Any]:
-    """A report entry with the policy's AP on the test scenes filled in (or why not); never raises."""
+    """A report entry with the policy's AP under every ``config.ap_qualities`` definition (``ap_by_quality``;
+    ``ap`` is the headline suctionnet one) filled in, or why not; never raises."""
     entry = _entry(name)
     policy, why = load_policy(name, **_policy_kwargs(name, config))
     if policy is None:
         entry.update(status="not available", reason=why)
         return entry
-    print(f"[report] AP of {name} on {config.test_data}", file=sys.stderr)
-    entry["ap"], entry["ap_error"] = _policy_ap(policy, None, name, config)
+    for quality in config.ap_qualities:
+        print(f"[report] AP of {name} on {config.test_data}, quality {quality}", file=sys.stderr)
+        result, error = _policy_ap(policy, None, f"{name} ({quality})", config,
+                                   APVariant(quality, f"quality {quality}", quality=quality))
+        entry["ap_by_quality"][quality] = result
+        if error is not None:
+            entry["ap_errors"][quality] = error
+    entry["ap"] = entry["ap_by_quality"].get(HEADLINE_QUALITY)
+    entry["ap_error"] = entry["ap_errors"].get(HEADLINE_QUALITY)
     return entry
+
+
+def evaluate_paper_compat(config: ReportConfig, policies: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The paper-compatible rows: each of ``PAPER_COMPAT_POLICIES`` in the report, under every
+    ``PAPER_COMPAT_VARIANTS`` protocol; variant (a) reuses the policy's suctionnet AP. Never raises."""
+    rows = []
+    for name in PAPER_COMPAT_POLICIES:
+        entry = policies.get(name)
+        if entry is None:
+            continue
+        row = {"name": name, "label": entry.get("label", label(name)), "status": "ok", "reason": None,
+               "results": {}, "errors": {}}
+        if entry.get("ap") is None:
+            row.update(status="not available", reason=entry.get("reason") or entry.get("ap_error")
+                       or "no suctionnet AP")
+            rows.append(row)
+            continue
+        policy, why = load_policy(name, **_policy_kwargs(name, config))
+        for variant in PAPER_COMPAT_VARIANTS:
+            if variant.quality == HEADLINE_QUALITY and variant.nms_radius is None:
+                result, error = entry["ap"], None
+            else:
+                result, error = _policy_ap(policy, why, f"{name} ({variant.name}, paper-compatible)", config,
+                                           variant)
+            row["results"][variant.name] = result
+            if error is not None:
+                row["errors"][variant.name] = error
+        rows.append(row)
+    return rows
+
+
+def read_label_physics(path: str | Path) -> dict[str, Any] | None:
+    """``eval/label_physics.py``'s summary (ROC-AUC of the physical label against the env's verdict, with its
+    interval, per layout, and the confusion at label > 0), or None when it was not measured; one reason if the file
+    cannot be used."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        auc = data["auc"]
+        found = {"path": str(path), "auc": float(auc["estimate"]), "low": float(auc["low"]),
+                 "high": float(auc["high"]), "picks": int(data["picks"]),
+                 "by_layout": {k: float(v["estimate"]) for k, v in data.get("auc_by_layout", {}).items()},
+                 "confusion": data.get("confusion"), "error": None}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return {"path": str(path), "auc": None, "error": f"not an eval/label_physics.py summary ({_reason(exc)})"}
+    plot = path.with_suffix(".png")
+    found["plot"] = str(plot) if plot.is_file() else None
+    return found
 
 
 def evaluate_policy_clearance(name: str, config: ReportConfig, objects: tuple[str, ...] | None = None,
@@ -100,7 +179,7 @@ def finish_entry(entry: dict[str, Any], config: ReportConfig) -> dict[str, Any]:
 def evaluate_policy(name: str, config: ReportConfig) -> dict[str, Any]:
     """AP on the test scenes and clearance on the shared seeds for one policy; never raises."""
     entry = evaluate_policy_ap(name, config)
-    if entry["status"] == "ok" and not config.skip_clearance:
+    if entry["status"] == "ok" and not config.skip_clearance and config.clearance_from is None:
         entry["clearance"], entry["clearance_error"] = evaluate_policy_clearance(name, config)
     return finish_entry(entry, config)
 
@@ -162,12 +241,44 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
 def run_report(config: ReportConfig) -> dict[str, Any]:
     if not Path(config.test_data).is_dir():
         raise FileNotFoundError(f"test data directory {config.test_data} does not exist")
+    source = None if config.clearance_from is None else load_clearance_source(config.clearance_from)
     policies = {name: evaluate_policy(name, config) for name in config.policies}
+    if source is not None:
+        reuse_clearance(policies, source, config)
     main_ap = policies.get(DIFFUSION, {}).get("ap")
     return {"generated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "config": asdict(config), "policies": policies,
+            "clearance_source": None if source is None else {
+                "path": config.clearance_from, "generated": source.get("generated"),
+                **{k: source.get("config", {}).get(k) for k in ("episodes", "parcels", "seed")}},
             "ablations": [] if config.skip_ablations else evaluate_ablations(config, main_ap),
+            "paper_compat": [] if config.skip_paper_compat else evaluate_paper_compat(config, policies),
+            "label_physics": read_label_physics(config.label_physics),
             "provenance": provenance(config)}
+
+
+def load_clearance_source(path: str) -> dict[str, Any]:
+    """An earlier report's JSON dump (``write_report``), read before anything runs: one clear error if unusable."""
+    import json
+
+    try:
+        source = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"--clearance-from {path}: not a readable report JSON ({exc})") from exc
+    if not isinstance(source, dict) or not isinstance(source.get("policies"), dict):
+        raise ValueError(f"--clearance-from {path}: not a report JSON (no 'policies')")
+    return source
+
+
+def reuse_clearance(policies: dict[str, dict[str, Any]], source: dict[str, Any], config: ReportConfig) -> None:
+    """Fill each entry's clearance from ``source`` (by policy name); a policy it lacks says so."""
+    for name, entry in policies.items():
+        old = source["policies"].get(name, {}).get("clearance")
+        if old is None:
+            entry["clearance_error"] = f"not in {config.clearance_from}"
+        else:
+            entry["clearance"] = old
+        finish_entry(entry, config)
 
 
 def provenance(config: ReportConfig) -> dict[str, dict[str, Any]]:

@@ -3,13 +3,23 @@ its bootstrap 95% interval, plus paired comparisons, failure anatomy and checkpo
 
 from __future__ import annotations
 
+import json
 from itertools import pairwise
 from typing import Any
 
 from eval.clearance import LAYOUTS, OBJECT_SETS, OUTCOMES, rate_pair
 from eval.paper_results import TABLE_II_TOP1, TABLE_II_TOP50, TABLE_V
 from eval.report.comparisons import paired_ap
-from eval.report.config import AP_METRICS, DIFFUSION, label
+from eval.report.config import (
+    AP_METRICS,
+    CEILING,
+    DIFFUSION,
+    HEADLINE_QUALITY,
+    LABEL_ORACLE,
+    ORACLE,
+    PAPER_COMPAT_VARIANTS,
+    label,
+)
 from eval.report.variants import REFERENCE
 from eval.stats import format_interval
 from policies.provenance import FIELDS as PROVENANCE_FIELDS
@@ -39,22 +49,174 @@ def _unavailable(entry: dict[str, Any]) -> str | None:
     return f"{entry['status']}: {entry['reason']}"
 
 
-def table_ii(policies: dict[str, dict[str, Any]]) -> str:
-    """Paper Table II layout, every cell 'ours [95% interval over scenes] / paper'."""
-    head = ["method"] + [f"Top-50 {m}" for m in AP_METRICS] + [f"Top-1 {m}" for m in AP_METRICS]
-    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+# Table II's figures in its order (Top-50, then Top-1), then the visibility column the paper adds for parcels.
+TABLE_II_KEYS: tuple[str, ...] = (*AP_METRICS, *(f"top1_{m}" for m in AP_METRICS))
+TABLE_II_HEAD: tuple[str, ...] = (*(f"Top-50 {m}" for m in AP_METRICS), *(f"Top-1 {m}" for m in AP_METRICS), "AP+vis")
+
+
+def ap_result(entry: dict[str, Any], quality: str = HEADLINE_QUALITY) -> dict[str, Any] | None:
+    """An entry's AP under one definition; older entries hold only the headline one, as ``ap``."""
+    by_quality = entry.get("ap_by_quality") or {}
+    if quality in by_quality:
+        return by_quality[quality]
+    return entry.get("ap") if quality == HEADLINE_QUALITY else None
+
+
+def distinct_results(results: list[dict[str, Any] | None]) -> list[dict[str, Any]]:
+    """Each AP run once: ``ap`` is one of ``ap_by_quality``'s, and a paper-compatible row (a) the entry's own,
+    also after a JSON round trip has made them separate copies (the same policy, data and protocol)."""
+    unique: dict[Any, dict[str, Any]] = {}
+    for r in results:
+        if r is not None:
+            key = (json.dumps([r.get("policy"), r.get("data"), r.get("config")], sort_keys=True, default=str)
+                   if "config" in r else id(r))
+            unique.setdefault(key, r)
+    return list(unique.values())
+
+
+def ap_results(entry: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every AP result an entry holds, each once."""
+    return distinct_results([entry.get("ap"), *(entry.get("ap_by_quality") or {}).values()])
+
+
+def ap_label(name: str, entry: dict[str, Any]) -> str:
+    """A method's name in the AP tables, where the registered oracle submits the best stored labels."""
+    return LABEL_ORACLE if name == ORACLE else entry.get("label", label(name))
+
+
+def ceiling_of(policies: dict[str, dict[str, Any]], quality: str = HEADLINE_QUALITY) -> dict[str, Any] | None:
+    """The q = 1 ceiling's figures from the first result that carries one (it depends on the scenes only)."""
+    for entry in policies.values():
+        result = ap_result(entry, quality)
+        if result is not None and result.get("ceiling"):
+            return result["ceiling"]
+    return None
+
+
+def _why_missing(entry: dict[str, Any], quality: str) -> str:
+    unavailable = _unavailable(entry)
+    if unavailable:
+        return unavailable
+    error = (entry.get("ap_errors") or {}).get(quality) or (entry.get("ap_error") if quality == HEADLINE_QUALITY
+                                                            else None)
+    return f"failed: {error}" if error else "not measured"
+
+
+def _ceiling_vis(ceiling: dict[str, Any]) -> dict[str, Any]:
+    """The ceiling holds for AP+vis too: q = 1 on every kept slot, visibility included."""
+    return {**ceiling, "AP+vis": ceiling["AP"],
+            "intervals": {**ceiling.get("intervals", {}), "AP+vis": ceiling.get("intervals", {}).get("AP")}}
+
+
+def table_ii(policies: dict[str, dict[str, Any]], quality: str = HEADLINE_QUALITY) -> str:
+    """Paper Table II layout under one quality definition, plus AP+vis: every figure of ours with its 95% interval
+    over scenes, the label oracle's row and a last q = 1 ceiling row. Under ``suctionnet`` (the paper's protocol)
+    each Table II cell reads 'ours / paper'; under any other definition ours stand alone."""
+    with_paper = quality == HEADLINE_QUALITY
+    lines = ["| method | " + " | ".join(TABLE_II_HEAD) + " |", "|---" * (len(TABLE_II_HEAD) + 1) + "|"]
+
+    def cells(result: dict[str, Any] | None, paper: tuple[float | None, ...] | None) -> list[str]:
+        ours = [None if result is None else _ours(result, key) for key in (*TABLE_II_KEYS, "AP+vis")]
+        ours = ["–" if cell is None else cell for cell in ours]
+        if not with_paper or paper is None:
+            return ours
+        return [f"{cell} / {_fmt(p)}" for cell, p in zip(ours, paper)] + ours[len(paper):]
+
     for name, entry in policies.items():
-        ap = entry.get("ap")
-        paper50, paper1 = TABLE_II_TOP50.get(name, (None,) * 3), TABLE_II_TOP1.get(name, (None,) * 3)
-        method = entry.get("label", label(name))
-        if ap is None:
-            method += f" ({_unavailable(entry) or 'failed: ' + str(entry.get('ap_error'))})"
-            cells = [_pair(None, p) for p in (*paper50, *paper1)]
-        else:
-            cells = [_ap_pair(ap, m, p) for m, p in zip(AP_METRICS, paper50)]
-            cells += [_ap_pair(ap, f"top1_{m}", p) for m, p in zip(AP_METRICS, paper1)]
-        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        result = ap_result(entry, quality)
+        if result is not None and "AP+vis" not in result:
+            result = {**result, "AP+vis": None}  # an older result, before the visibility column
+        method = ap_label(name, entry) + ("" if result is not None else f" ({_why_missing(entry, quality)})")
+        paper = (*TABLE_II_TOP50.get(name, (None,) * 3), *TABLE_II_TOP1.get(name, (None,) * 3))
+        lines.append(f"| {method} | " + " | ".join(cells(result, paper)) + " |")
+    ceiling = ceiling_of(policies, quality)
+    lines.append(f"| {CEILING} | " + " | ".join(cells(None if ceiling is None else _ceiling_vis(ceiling), None))
+                 + " |")
     return "\n".join(lines)
+
+
+def channel_cost_table(policies: dict[str, dict[str, Any]], qualities: tuple[str, ...]) -> str:
+    """What each channel costs the label oracle, per definition: its Top-50 AP with the channel minus without it
+    (``channel_cost`` negated), and visibility's cost, AP+vis minus AP (points)."""
+    from eval.ap import CHANNELS
+
+    head = ["definition", "label oracle Top-50 AP", *CHANNELS, "visibility (AP+vis − AP)"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    entry = policies.get(ORACLE, {})
+    for quality in qualities:
+        result = ap_result(entry, quality)
+        if result is None:
+            reason = _why_missing(entry, quality) if entry else "the oracle was not in this report"
+            lines.append(f"| `{quality}` | {reason} |" + " – |" * (len(head) - 2))
+            continue
+        costs = result.get("channel_cost") or {}
+        vis = result.get("AP+vis")
+        cells = [_ours(result, "AP"), *(_fmt(None if c not in costs else 0.0 - costs[c]) for c in CHANNELS),
+                 _fmt(None if vis is None else vis - result["AP"])]
+        lines.append(f"| `{quality}` | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+PAPER_COMPAT_KEYS: tuple[str, ...] = ("AP", "AP0.8", "AP0.4", "top1_AP", "AP+vis")
+
+
+def paper_compat_table(rows: list[dict[str, Any]]) -> str:
+    """The label oracle (and Diffusion-Suction) under SuctionNet's evaluator and the paper-compatible variants."""
+    head = ["method", "protocol", "Top-50 AP", "Top-50 AP0.8", "Top-50 AP0.4", "Top-1 AP", "AP+vis"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for row in rows:
+        method = ap_label(row["name"], row)
+        if row["status"] != "ok":
+            lines.append(f"| {method} | {row['status']}: {row['reason']} |" + " – |" * (len(head) - 2))
+            continue
+        for variant in PAPER_COMPAT_VARIANTS:
+            result = row["results"].get(variant.name)
+            if result is None:
+                why = row["errors"].get(variant.name, "not measured")
+                lines.append(f"| {method} | {variant.description} (failed: {why}) |" + " – |" * (len(head) - 2))
+                continue
+            cells = [_ours(result, key) if result.get(key) is not None else "–" for key in PAPER_COMPAT_KEYS]
+            lines.append(f"| {method} | {variant.description} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _change(result: dict[str, Any], base: dict[str, Any]) -> str:
+    """'raises its Top-50 AP from X to Y (+d points; paired over the same scenes [..])'."""
+    diff = result["AP"] - base["AP"]
+    paired = paired_ap(result, base, "AP")
+    interval = "" if paired is None else f"; paired over the same scenes {format_interval(paired)}"
+    if diff == 0:
+        return (f"leaves its Top-50 AP at {_fmt(base['AP'])} (0 points{interval}): its candidates already differ "
+                "wherever this change would act (a policy's own NMS spreads them out)")
+    return (f"{'raises' if diff > 0 else 'lowers'} its Top-50 AP from {_fmt(base['AP'])} to {_fmt(result['AP'])} "
+            f"({diff:+.2f} points{interval})")
+
+
+PAPER_COMPAT_EFFECTS: dict[str, str] = {  # what each variant changes, said beside the measured change
+    "nms": "NMS at the public Diffusion_Suction script's radius (in effect none) lets near-duplicates of the best "
+           "points fill every parcel's 10 slots",
+    "wrench": "SuctionNet's label-time wrench passes off-centre picks its evaluator rejects",
+    "both": "the two changes together",
+}
+
+
+def paper_compat_sentences(rows: list[dict[str, Any]]) -> list[str]:
+    """One sentence per paper-compatible change, for each method measured, from its numbers."""
+    out = []
+    for row in rows:
+        base = row.get("results", {}).get(PAPER_COMPAT_VARIANTS[0].name)
+        if row["status"] != "ok" or base is None:
+            continue
+        method = ap_label(row["name"], row)
+        for variant in PAPER_COMPAT_VARIANTS[1:]:
+            result = row["results"].get(variant.name)
+            if result is not None:
+                out.append(f"- {method}, {variant.description}: {PAPER_COMPAT_EFFECTS[variant.name]}; this "
+                           + _change(result, base) + ".")
+    paper = TABLE_II_TOP50.get(DIFFUSION)
+    if out and paper:
+        out.append(f"- For scale: the paper reports {paper[0]:.2f} Top-50 AP for Diffusion-Suction.")
+    return out
 
 
 def table_v(entry: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) -> str:

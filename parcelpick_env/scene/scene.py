@@ -47,8 +47,12 @@ class BinSpec:
         offset = np.abs(pts[:, :2] - np.asarray(self.center_xy, dtype=np.float64))
         return np.all(offset <= half, axis=1) & (pts[:, 2] >= self.floor_z - floor_tolerance)
 
+    def floor_meshes(self) -> list[trimesh.Trimesh]:
+        """The floor alone (SuctionNet's "table"): the first of ``meshes()``."""
+        return self.meshes()[:1]
+
     def meshes(self) -> list[trimesh.Trimesh]:
-        """Floor and four walls as world-frame boxes (used by collision scoring and rendering)."""
+        """Floor, then four walls, as world-frame boxes (used by collision scoring and rendering)."""
         sx, sy = self.inner_size
         t, h = self.wall_thickness, self.wall_height
         cx, cy = self.center_xy

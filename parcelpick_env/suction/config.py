@@ -10,6 +10,10 @@ from typing import Literal
 from parcelpick_env.config_checks import require, require_finite_numbers, require_int, require_positive_numbers
 
 SEAL_MODELS = ("spring", "suctionnet", "bellows")
+# "paper": the paper's label wrench (norm of the bending torque about the COM, times the gravity-angle factor);
+# "suctionnet": SuctionNet's evaluator (larger bending component about the surface centroid, no angle factor);
+# "suctionnet_label": SuctionNet's lenient label-time wrench (docs/labels.md, "Wrench models").
+WRENCH_MODELS = ("paper", "suctionnet", "suctionnet_label")
 # The cell's physical cup: one 40 mm (r = 20 mm) 1.5-fold bellows cup (docs/cell.md, "Cup and vacuum").
 # Sized for the parcel mix: it seals tubes down to R ~ 30 mm; the env, the tool URDF and the mass bound read it.
 CELL_CUP_RADIUS = 0.020
@@ -42,6 +46,7 @@ class SuctionConfig:
     cup_radius: float = 0.010  # r, metres
     rim_vertices: int = 72
     seal_model: Literal["spring", "suctionnet", "bellows"] = "spring"
+    wrench_model: Literal["paper", "suctionnet", "suctionnet_label"] = "paper"
     obstruction_height: float = 0.005  # surface inside the cup disk this far above p breaks the seal
     ray_offset: float = 0.05  # rim rays start this far above the candidate along n
     max_ray_depth: float = 0.10  # a rim ray travelling further than this below the cup plane misses
@@ -70,6 +75,8 @@ class SuctionConfig:
         require_int("SuctionConfig", "rim_vertices", self.rim_vertices, lo=8)
         if self.seal_model not in SEAL_MODELS:
             raise ValueError(f"SuctionConfig.seal_model must be one of {SEAL_MODELS}, got {self.seal_model!r}")
+        if self.wrench_model not in WRENCH_MODELS:
+            raise ValueError(f"SuctionConfig.wrench_model must be one of {WRENCH_MODELS}, got {self.wrench_model!r}")
         if not 0 <= self.tool_near < self.tool_far:
             raise ValueError("SuctionConfig needs 0 <= tool_near < tool_far")
         threads = self.num_threads

@@ -15,8 +15,10 @@ import trimesh
 
 from parcelpick_env.suction.collision import collision_scores
 from parcelpick_env.suction.config import SuctionConfig
+from parcelpick_env.suction.cup import CupSpec
 from parcelpick_env.suction.cup_seal import ContactSeal, bellows_seal
-from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, validate_meshes
+from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, o3d_tensor, validate_meshes
+from parcelpick_env.suction.physical import PhysicalGrasp, hanging_ratios, hull_seats, physical_tool
 from parcelpick_env.suction.seal import SealScene, seal_scores
 from parcelpick_env.suction.wrench import wrench_scores
 
@@ -29,13 +31,18 @@ MAX_BATCH = 65536  # candidates per ray query: bounds the ray buffers to about 1
 
 @dataclass
 class SuctionScores:
-    """Per-candidate scores, each (N,) float32 in [0, 1]; ``total`` is their product."""
+    """Per-candidate scores, each (N,) float32 in [0, 1]; ``total`` is their product, ``quality`` the product
+    without visibility (what SuctionNet's AP scores)."""
 
     seal: np.ndarray
     wrench: np.ndarray
     collision: np.ndarray
     visibility: np.ndarray
     total: np.ndarray
+
+    @property
+    def quality(self) -> np.ndarray:
+        return (self.seal * self.wrench * self.collision).astype(np.float32)
 
     def as_array(self) -> np.ndarray:
         """(N, 4) in the label order seal, wrench, collision, visibility."""
@@ -48,13 +55,13 @@ class SuctionScores:
 class SuctionScorer:
     """Scores suction candidates ``(p, n)`` on a scene of world-frame parcel meshes.
 
-    ``meshes[k]`` is parcel ``k`` (its object id) and ``coms[k]`` its centre of mass; ``obstacles``
-    (bin walls, floor) only block the tool.
+    ``meshes[k]`` is parcel ``k`` (its object id), ``coms[k]`` its centre of mass and ``masses[k]`` its mass (kg;
+    only ``physical`` needs them); ``obstacles`` (bin walls, floor) only block the tool.
     """
 
     def __init__(self, meshes: Sequence[trimesh.Trimesh], coms: np.ndarray,
                  obstacles: Sequence[trimesh.Trimesh] = (),
-                 config: SuctionConfig = SuctionConfig()) -> None:
+                 config: SuctionConfig = SuctionConfig(), masses: np.ndarray | None = None) -> None:
         if not isinstance(config, SuctionConfig):
             raise ValueError(f"config must be a SuctionConfig, got {type(config).__name__}")
         self.config = config
@@ -64,23 +71,34 @@ class SuctionScorer:
         if coms.shape != (len(self.meshes), 3) or not np.all(np.isfinite(coms)):
             raise ValueError(f"coms must be finite with shape ({len(self.meshes)}, 3), got {coms.shape}")
         self.coms = coms
+        self.masses = None if masses is None else np.asarray(masses, dtype=np.float64)
+        if self.masses is not None and (self.masses.shape != (len(self.meshes),) or not np.all(self.masses > 0)):
+            raise ValueError(f"masses must be positive with shape ({len(self.meshes)},), got {self.masses!r}")
+        # SuctionNet's wrench acts at the mean of a dense surface sample: the area-weighted surface centroid.
+        self.surface_centroids = np.array([(m.triangles_center * m.area_faces[:, None]).sum(axis=0) / m.area
+                                           for m in self.meshes]).reshape(-1, 3)
         self._seal_scene = SealScene(self.meshes, config)
         everything = self.meshes + self.obstacles
         self._collision_scene = build_scene(everything) if everything else None
         self._parcel_scene: o3d.t.geometry.RaycastingScene | None = None  # built on first use
+        self._hull_scene: o3d.t.geometry.RaycastingScene | None = None  # parcels' hulls, then obstacles
 
     @classmethod
-    def from_scene(cls, scene: "Scene", config: SuctionConfig = SuctionConfig()) -> "SuctionScorer":
-        """Scorer for a settled pile: its parcels, their centres of mass, and the bin as obstacles."""
-        return cls(scene.world_meshes(), scene.world_coms(), scene.bin.meshes(), config)
+    def from_scene(cls, scene: "Scene", config: SuctionConfig = SuctionConfig(),
+                   obstacles: Sequence[trimesh.Trimesh] | None = None) -> "SuctionScorer":
+        """Scorer for a settled pile: its parcels, their centres of mass and masses, and the bin as obstacles
+        (or ``obstacles``: SuctionNet's evaluator blocks the tool on the objects and the table only)."""
+        return cls(scene.world_meshes(), scene.world_coms(), scene.bin.meshes() if obstacles is None else obstacles,
+                   config, masses=scene.masses())
 
     def __getstate__(self) -> dict:
         """Pickle the geometry only (Open3D scenes cannot be pickled); they are rebuilt on load."""
         return {"meshes": self.meshes, "coms": self.coms, "obstacles": self.obstacles,
-                "config": self.config}
+                "config": self.config, "masses": self.masses}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__(state["meshes"], state["coms"], state["obstacles"], state["config"])
+        type(self).__init__(self, state["meshes"], state["coms"], state["obstacles"], state["config"],
+                            state.get("masses"))
 
     @property
     def num_objects(self) -> int:
@@ -109,8 +127,38 @@ class SuctionScorer:
                  for s in _batch_slices(len(tips))]
         return ContactSeal.concatenate(parts) if len(parts) != 1 else parts[0]
 
+    def physical(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray,
+                 cup: CupSpec = CupSpec()) -> PhysicalGrasp:
+        """What the cell will find at each candidate, hanging still (``suction/physical.py``): the bellows seal
+        where the cup rests on the parcel's hull, the ring ratios of the real mass at that seal's pull, and the
+        physical tool's clearance against the hulls and obstacles. Needs ``seal_model="bellows"`` (the env's
+        cup) and ``masses``; ids < 0 get seal 0, no collision clearance and infinite ratios."""
+        if self.config.seal_model != "bellows" or self.masses is None:
+            raise ValueError("physical scores need SuctionConfig(seal_model='bellows') (the env's cup) and the "
+                             "parcels' masses")
+        points, normals = self._candidates(points, normals)
+        object_ids = self._object_ids(object_ids, len(points))
+        if self._hull_scene is None:
+            self._hull_scene = build_scene([m.convex_hull for m in self.meshes] + self.obstacles)
+        parts = []
+        for s in _batch_slices(len(points)):
+            p, n, ids = points[s], normals[s], object_ids[s]
+            valid = ids >= 0
+            tips, own = hull_seats(self._hull_scene, p, n, ids, self.config.num_threads)
+            seal = np.zeros(len(p))
+            ratios = np.full((len(p), 6), np.inf)
+            if np.any(valid):
+                contact = bellows_seal(self._seal_scene, tips[valid], -n[valid], ids[valid], measure_gap=True)
+                seal[valid] = np.where(own[valid], contact.quality, 0.0)
+                ratios[valid] = hanging_ratios(tips[valid], -n[valid], self.coms[ids[valid]], self.masses[ids[valid]],
+                                               seal[valid], self.config, cup)
+            collision = collision_scores(self._hull_scene, p, n, physical_tool(self.config))
+            parts.append(PhysicalGrasp(seal=seal.astype(np.float32), ratios=ratios,
+                                       collision=np.where(valid, collision, 0.0).astype(np.float32)))
+        return PhysicalGrasp.concatenate(parts) if len(parts) != 1 else parts[0]
+
     def wrench(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
-        """(N,) wrench score against gravity on a unit mass at the object's COM (0 for ids < 0)."""
+        """(N,) wrench score against gravity on a unit mass (0 for ids < 0), by ``config.wrench_model``."""
         points, normals = self._candidates(points, normals)
         object_ids = self._object_ids(object_ids, len(points))
         return self._wrench(points, normals, object_ids)
@@ -125,16 +173,22 @@ class SuctionScorer:
         """All four scores and their product; ``visibility`` is per object (M,), None means 1."""
         points, normals = self._candidates(points, normals)
         object_ids = self._object_ids(object_ids, len(points))
-        per_object = self._visibility(visibility)
-        valid = object_ids >= 0
-        vis = np.zeros(len(points), dtype=np.float32)
-        vis[valid] = per_object[object_ids[valid]]
+        vis = self.candidate_visibility(object_ids, visibility)
         seal = self._seal(points, normals, object_ids)
         wrench = self._wrench(points, normals, object_ids)
         collision = self._collision(points, normals)
         total = seal * wrench * collision * vis
         return SuctionScores(seal=seal, wrench=wrench, collision=collision, visibility=vis,
                              total=total.astype(np.float32))
+
+    def candidate_visibility(self, object_ids: np.ndarray, visibility: np.ndarray | None) -> np.ndarray:
+        """(N,) float32: each candidate's object's visibility (per object (M,), None means 1); 0 for ids < 0."""
+        object_ids = self._object_ids(object_ids, len(np.asarray(object_ids).reshape(-1)))
+        per_object = self._visibility(visibility)
+        out = np.zeros(len(object_ids), dtype=np.float32)
+        valid = object_ids >= 0
+        out[valid] = per_object[object_ids[valid]]
+        return out
 
     def nearest_object(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Object id of the closest parcel surface to each point, and the distance to it.
@@ -147,7 +201,7 @@ class SuctionScorer:
         if self._parcel_scene is None:
             self._parcel_scene = build_scene(self.meshes)
         closest = self._parcel_scene.compute_closest_points(
-            o3d.core.Tensor(points.astype(np.float32)), nthreads=self.config.num_threads)
+            o3d_tensor(points.astype(np.float32)), nthreads=self.config.num_threads)
         ids = closest["geometry_ids"].numpy().astype(np.int64)
         ids[ids == O3D_INVALID_ID] = -1
         distances = np.linalg.norm(closest["points"].numpy().astype(np.float64) - points, axis=1)
@@ -161,15 +215,15 @@ class SuctionScorer:
         return _in_batches(lambda *a: seal_scores(self._seal_scene, *a), points, normals, object_ids)
 
     def _collision(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        return _in_batches(lambda *a: collision_scores(self._collision_scene, *a, self.config),
+        return _in_batches(lambda p, n: collision_scores(self._collision_scene, p, n, self.config),
                            points, normals)
 
     def _wrench(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray) -> np.ndarray:
         out = np.zeros(len(points), dtype=np.float32)
         valid = object_ids >= 0
         if np.any(valid):
-            out[valid] = wrench_scores(points[valid], normals[valid],
-                                       self.coms[object_ids[valid]], self.config)
+            centres = self.coms if self.config.wrench_model == "paper" else self.surface_centroids
+            out[valid] = wrench_scores(points[valid], normals[valid], centres[object_ids[valid]], self.config)
         return out
 
     @staticmethod

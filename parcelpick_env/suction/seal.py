@@ -1,10 +1,16 @@
-"""Seal score: the compliant spring model of the cup rim, projected onto the object's true mesh.
+"""Seal score on the object's true mesh: the paper's compliant spring rim, or SuctionNet's evaluator seal.
 
 docs/labels.md, 'Seal'. The 72 rim vertices are projected along ``-n`` by ray casting. A
 candidate may only seal on ITS object, so every parcel is copied into its own cell of one ray
 scene (cells far enough apart that no ray reaches a neighbour within the accepted depth); the
 rays of a candidate on object ``k`` are shifted into cell ``k``. All ``N * (72 + interior)``
 rays then go through a single ``cast_rays`` call and only hits on geometry ``k`` count.
+
+``seal_model="suctionnet"`` is SuctionNet-1Billion's evaluator (``get_smoothness_score``): each of the 72 rim
+vertices takes the HIGHEST surface point of its angular bin over the annulus ``r +- 1 mm``, which SuctionNet reads
+off a dense (0.2 mm) surface sample. A ray cast from above finds the highest surface point of its column exactly,
+so each bin here is the maximum over a 3 x 3 grid of columns (3 radii across the annulus, 3 headings across the
+bin, ``SUCTIONNET_BIN_RAYS``); a bin none of them hits is empty, and an empty bin fails the seal, as there.
 """
 
 from __future__ import annotations
@@ -20,6 +26,14 @@ from parcelpick_env.suction.geometry import build_scene, frame_rays, ring_patter
 # Rays inside the cup disk that look for an obstruction: the centre and rings at r/3 and 2r/3.
 OBSTRUCTION_RADII = (0.0, 1.0 / 3.0, 2.0 / 3.0)
 OBSTRUCTION_COUNTS = (1, 6, 12)
+# SuctionNet tests every dense point inside the disk; the suctionnet model probes it more densely (81 rays).
+SUCTIONNET_OBSTRUCTION_RADII = (0.0, 0.25, 0.5, 0.75, 0.95)
+SUCTIONNET_OBSTRUCTION_COUNTS = (1, 8, 16, 24, 32)
+# SuctionNet's rim: the points 9-11 mm from the axis at r = 10 mm, i.e. r +- 1 mm (a fixed band, as there).
+SUCTIONNET_RIM_BAND = 0.001
+SUCTIONNET_BAND_RADII = (-1.0, 0.0, 1.0)  # in units of the band: inner edge, rim, outer edge
+SUCTIONNET_BIN_HEADINGS = (-1.0 / 3.0, 0.0, 1.0 / 3.0)  # in units of the bin's angular width, about its centre
+SUCTIONNET_BIN_RAYS = len(SUCTIONNET_BAND_RADII) * len(SUCTIONNET_BIN_HEADINGS)
 # SuctionNet's fit term: exp(-FIT_GAIN * variance of rim heights (m^2)).
 FIT_GAIN = 1e5
 
@@ -51,14 +65,28 @@ class SealScene:
         self.scene = build_scene(meshes, self.offsets)
 
 
+def rim_rays_per_vertex(config: SuctionConfig) -> int:
+    """Rays cast for each rim vertex: 1 (exactly on the rim), or the suctionnet bin's ``SUCTIONNET_BIN_RAYS``."""
+    return SUCTIONNET_BIN_RAYS if config.seal_model == "suctionnet" else 1
+
+
 def seal_ray_pattern(config: SuctionConfig) -> np.ndarray:
-    """(72 + 19, 6) frame-ray coefficients: rim rays first, then the obstruction rays.
+    """Frame-ray coefficients: rim rays first (``rim_vertices * rim_rays_per_vertex``, vertex-major), then the
+    obstruction rays inside the disk.
 
     Every ray starts ``ray_offset`` above the cup plane and points along ``-n``.
     """
-    r = config.cup_radius
-    rim = ring_pattern([r], [config.rim_vertices])
-    inner = ring_pattern([f * r for f in OBSTRUCTION_RADII], OBSTRUCTION_COUNTS)
+    r, count = config.cup_radius, config.rim_vertices
+    if config.seal_model == "suctionnet":
+        width = 2.0 * np.pi / count
+        heading = (np.arange(count)[:, None, None] + np.asarray(SUCTIONNET_BIN_HEADINGS)[None, None, :]) * width
+        radius = r + SUCTIONNET_RIM_BAND * np.asarray(SUCTIONNET_BAND_RADII)[None, :, None]
+        heading, radius = np.broadcast_arrays(heading, radius)  # (vertices, radii, headings)
+        rim = np.stack([radius * np.cos(heading), radius * np.sin(heading)], axis=-1).reshape(-1, 2)
+        inner = ring_pattern([f * r for f in SUCTIONNET_OBSTRUCTION_RADII], SUCTIONNET_OBSTRUCTION_COUNTS)
+    else:
+        rim = ring_pattern([r], [count])
+        inner = ring_pattern([f * r for f in OBSTRUCTION_RADII], OBSTRUCTION_COUNTS)
     planar = np.concatenate([rim, inner], axis=0)
     coefficients = np.zeros((len(planar), 6))
     coefficients[:, :2] = planar
@@ -78,7 +106,8 @@ def seal_scores(seal_scene: SealScene, points: np.ndarray, normals: np.ndarray,
     p, n, ids = points[valid], normals[valid], object_ids[valid]
     rays = frame_rays(p + seal_scene.offsets[ids], n, *tangent_frames(n), seal_ray_pattern(config))
     hits = seal_scene.scene.cast_rays(rays, nthreads=config.num_threads)
-    count, num_rim = len(p), config.rim_vertices
+    count, per_vertex = len(p), rim_rays_per_vertex(config)
+    num_rim = config.rim_vertices * per_vertex
     t_hit = hits["t_hit"].numpy().reshape(count, -1)
     on_object = hits["geometry_ids"].numpy().reshape(count, -1) == ids.astype(np.uint32)[:, None]
 
@@ -87,6 +116,10 @@ def seal_scores(seal_scene: SealScene, points: np.ndarray, normals: np.ndarray,
     height = np.float32(config.ray_offset) - t_hit
     rim_height, inner_height = height[:, :num_rim], height[:, num_rim:]
     rim_ok = on_object[:, :num_rim] & (rim_height >= -config.max_ray_depth)
+    if per_vertex > 1:  # suctionnet: each vertex is the highest surface point of its bin; an empty bin fails
+        binned = rim_ok.reshape(count, config.rim_vertices, per_vertex)
+        rim_height = np.where(binned, rim_height.reshape(binned.shape), -np.inf).max(axis=2)
+        rim_ok = binned.any(axis=2)
 
     # Inside the disk: surface standing too high above p obstructs the cup, and so does a hit
     # on a face's back side (p lies under the solid, e.g. a flipped normal) on an oriented mesh.
@@ -98,7 +131,7 @@ def seal_scores(seal_scene: SealScene, points: np.ndarray, normals: np.ndarray,
     ok = np.all(rim_ok, axis=1) & ~obstructed
 
     rim_height = rim_height[ok].astype(np.float64)
-    chord = 2.0 * config.cup_radius * np.sin(np.pi / num_rim)  # l_i, identical for all i
+    chord = 2.0 * config.cup_radius * np.sin(np.pi / config.rim_vertices)  # l_i, identical for all i
     # Projection moves vertices only along n, orthogonal to the chords, so l~_i follows exactly:
     # l~_i / l_i = sqrt(1 + (dh_i / l_i)^2), largest where |dh_i| is.
     dh = np.maximum(np.abs(rim_height[:, 1:] - rim_height[:, :-1]).max(axis=1, initial=0.0),

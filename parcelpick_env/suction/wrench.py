@@ -1,9 +1,16 @@
-"""Wrench score: can the cup's material resist gravity's torque, and how far from vertical is it?
+"""Wrench score: can the cup's material resist gravity's torque? Three published definitions.
 
-docs/labels.md, 'Wrench' (the paper's corrected material condition):
-``S = (1 - min(1, |tau_e| / tau_thr)) * (1 - a / pi)``, with ``tau_e`` the torque of a unit mass
-at the centre of mass about the contact, in the components orthogonal to the cup axis, and ``a``
-the angle between the approach ``-n`` and gravity.
+docs/labels.md, 'Wrench'. Every model takes the torque of gravity on a unit mass at a body centre ``c``
+about the contact ``p`` and compares its bending part with ``tau_thr = r * k * pi``:
+
+- ``"paper"`` (the paper's corrected label): ``(1 - min(1, |tau_e| / tau_thr)) * (1 - a / pi)``, with ``tau_e``
+  the components orthogonal to the cup axis, ``c`` the centre of mass, and ``a`` the angle between the approach
+  ``-n`` and gravity.
+- ``"suctionnet"`` (SuctionNet-1Billion's evaluator, ``get_wrench_score``): ``1 - min(1, max(|tau_y|, |tau_z|) /
+  tau_thr)`` in SuctionNet's approach frame (x along ``n``, y horizontal, z = x cross y), ``c`` the centroid of
+  the object's surface, no angle factor.
+- ``"suctionnet_label"`` (SuctionNet's label-time wrench): ``1 - min(1, |(tau_x, tau_y)| / (sqrt(2) tau_thr))``
+  in the same frame: the twist and one bending axis, at a threshold sqrt(2) higher. Far more lenient.
 """
 
 from __future__ import annotations
@@ -13,13 +20,32 @@ import numpy as np
 from parcelpick_env.suction.config import SuctionConfig
 
 
-def wrench_scores(points: np.ndarray, normals: np.ndarray, coms: np.ndarray,
+def suctionnet_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """SuctionNet's approach frame per unit normal (``viewpoint_params_to_matrix`` at angle 0): x along ``n``,
+    y = (-n_y, n_x, 0) normalised (world y where ``n`` is vertical), z = x cross y."""
+    x = np.asarray(normals, dtype=np.float64)
+    y = np.stack([-x[:, 1], x[:, 0], np.zeros(len(x))], axis=1)
+    norm = np.linalg.norm(y, axis=1, keepdims=True)
+    y = np.where(norm > 0, y / np.where(norm > 0, norm, 1.0), np.array([0.0, 1.0, 0.0]))
+    return x, y, np.cross(x, y)
+
+
+def wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.ndarray,
                   config: SuctionConfig) -> np.ndarray:
-    """(N,) wrench score for contacts ``points`` with outward ``normals`` on bodies with ``coms``."""
+    """(N,) wrench score for contacts ``points`` with outward ``normals`` on bodies centred at ``centres``
+    (the COM for ``"paper"``, the surface centroid for the SuctionNet models; the scorer chooses)."""
     force = np.array([0.0, 0.0, -config.unit_mass * config.gravity])
-    torque = np.cross(coms - points, force)
-    torque -= np.sum(torque * normals, axis=1, keepdims=True) * normals
-    torque_ratio = np.minimum(1.0, np.linalg.norm(torque, axis=1) / config.torque_threshold)
-    # -n . (0, 0, -1) = n_z
-    angle = np.arccos(np.clip(normals[:, 2], -1.0, 1.0))
-    return ((1.0 - torque_ratio) * (1.0 - angle / np.pi)).astype(np.float32)
+    torque = np.cross(centres - points, force)
+    if config.wrench_model == "paper":
+        torque -= np.sum(torque * normals, axis=1, keepdims=True) * normals
+        torque_ratio = np.minimum(1.0, np.linalg.norm(torque, axis=1) / config.torque_threshold)
+        # -n . (0, 0, -1) = n_z
+        angle = np.arccos(np.clip(normals[:, 2], -1.0, 1.0))
+        return ((1.0 - torque_ratio) * (1.0 - angle / np.pi)).astype(np.float32)
+    x, y, z = suctionnet_frames(normals)
+    t_x, t_y, t_z = (np.sum(torque * axis, axis=1) for axis in (x, y, z))
+    if config.wrench_model == "suctionnet":
+        load = np.maximum(np.abs(t_y), np.abs(t_z)) / config.torque_threshold
+    else:  # suctionnet_label
+        load = np.hypot(t_x, t_y) / (np.sqrt(2.0) * config.torque_threshold)
+    return (1.0 - np.minimum(1.0, load)).astype(np.float32)
