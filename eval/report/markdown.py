@@ -228,6 +228,7 @@ def write_report(report: dict[str, Any], out: str | os.PathLike, figures_dir: st
                "failures": plot_failures(report["policies"], figures_dir / "failures.png")}
     out.write_text(render_markdown(report, figures, out))
     json_path = out.with_suffix(".json")
+    # compact: the dump holds every scene and episode of every run (MBs indented); read it with json.load
     json_path.write_text(json.dumps({**report, "figures": {k: str(v) if v else None for k, v in figures.items()}},
-                                    indent=2, default=str))
+                                    separators=(",", ":"), default=str))
     return {"markdown": out, "json": json_path, **{k: v for k, v in figures.items() if v is not None}}
