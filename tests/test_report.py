@@ -490,3 +490,22 @@ def test_clearance_reused_from_an_earlier_report_is_labelled_as_such(report, tmp
         orchestration.load_clearance_source(str(tmp_path / "bad.json"))
     with pytest.raises(ValueError, match="exclude each other"):
         ReportConfig(test_data=str(tmp_path), clearance_from=str(earlier), skip_clearance=True)
+
+
+def test_paired_comparisons_cover_every_quality_definition():
+    """Diffusion-Suction ahead under suctionnet but behind under physical: each definition gets its own verdict."""
+    from eval.report.tables import comparison_table
+
+    def scored(qualities):  # an AP result with its scenes' indices, which paired comparisons match on
+        return {**_ap(qualities), "scenes": [{"index": i} for i in range(len(qualities))]}
+
+    good, bad = [[0.9, 0.9], [0.9, 0.8], [0.95, 0.9]], [[0.1, 0.0], [0.2, 0.1], [0.0, 0.1]]
+    first = _entry("diffusion", "Diffusion-Suction", scored(good))
+    second = _entry("dexnet", "Dex-Net 3.0", scored(bad))
+    first["ap_by_quality"] = {"suctionnet": first["ap"], "physical": scored(bad)}
+    second["ap_by_quality"] = {"suctionnet": second["ap"], "physical": scored(good)}
+    row = compare(first, second)
+    assert row["AP"]["verdict"] == "Diffusion-Suction ahead" and row["AP:physical"]["verdict"] == "Dex-Net 3.0 ahead"
+    table = comparison_table([row], {"diffusion": first, "dexnet": second})
+    assert "Top-50 AP (suctionnet) diff" in table and "Top-50 AP (physical) verdict" in table
+    assert "Dex-Net 3.0 ahead" in table

@@ -12,6 +12,7 @@ from typing import Any
 
 from eval.clearance import RATES
 from eval.stats import Interval, paired_difference, paired_ratio_difference, verdict
+from eval.report.config import HEADLINE_QUALITY
 
 # Episode fields behind each pooled rate's numerator and denominator (EpisodeResult names).
 _EPISODE_FIELDS = {"successes": "successes", "attempts": "attempts", "cleared": "parcels_cleared",
@@ -59,10 +60,15 @@ def paired_rate(clear_a: dict[str, Any] | None, clear_b: dict[str, Any] | None, 
 
 
 def compare(first: dict[str, Any], second: dict[str, Any]) -> dict[str, Any]:
-    """Top-50 AP, R_grasp and R_object of ``first - second``: each an interval dict and a verdict (or None)."""
+    """Top-50 AP (under the headline definition as ``AP``, under each other one as ``AP:<quality>``), R_grasp and
+    R_object of ``first - second``: each an interval dict and a verdict (or None)."""
     out: dict[str, Any] = {"first": first["name"], "second": second["name"]}
-    diffs = {"AP": paired_ap(first.get("ap"), second.get("ap"), "AP"),
-             **{rate: paired_rate(first.get("clearance"), second.get("clearance"), rate) for rate in RATES}}
+    diffs = {"AP": paired_ap(first.get("ap"), second.get("ap"), "AP")}
+    # the same Top-50 AP under each further quality definition the entries carry ("AP:physical", ...)
+    theirs = second.get("ap_by_quality") or {}
+    diffs.update({f"AP:{quality}": paired_ap(result, theirs.get(quality), "AP")
+                  for quality, result in (first.get("ap_by_quality") or {}).items() if quality != HEADLINE_QUALITY})
+    diffs.update({rate: paired_rate(first.get("clearance"), second.get("clearance"), rate) for rate in RATES})
     for key, diff in diffs.items():
         out[key] = None if diff is None else {**diff.to_dict(),
                                               "verdict": verdict(diff, first["label"], second["label"])}

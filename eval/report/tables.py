@@ -276,12 +276,15 @@ def _diff_cell(diff: dict[str, Any] | None) -> list[str]:
 
 def comparison_table(rows: list[dict[str, Any]], policies: dict[str, dict[str, Any]]) -> str:
     """Paired differences 'first - second' with their 95% intervals and who, if anyone, is ahead."""
-    head = ["comparison", "Top-50 AP diff", "AP verdict", "R_grasp diff", "R_grasp verdict", "R_object diff",
-            "R_object verdict"]
+    extra = sorted({key for row in rows for key in row if key.startswith("AP:")})
+    keys = ("AP", *extra, "R_grasp", "R_object")
+    titles = {"AP": f"Top-50 AP ({HEADLINE_QUALITY})", "R_grasp": "R_grasp", "R_object": "R_object",
+              **{key: f"Top-50 AP ({key[3:]})" for key in extra}}
+    head = ["comparison", *(f"{titles[key]} {part}" for key in keys for part in ("diff", "verdict"))]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for row in rows:
         name = f"{policies[row['first']]['label']} − {policies[row['second']]['label']}"
-        cells = [c for key in ("AP", "R_grasp", "R_object") for c in _diff_cell(row.get(key))]
+        cells = [c for key in keys for c in _diff_cell(row.get(key))]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
