@@ -54,6 +54,7 @@ from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
 from parcelpick_env.assets.parcel import ParcelAsset  # noqa: E402
 from parcelpick_env.cli import check_input_dir, check_output_path, check_policy, run_cli, usage_exit  # noqa: E402
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene  # noqa: E402
+from parcelpick_env.suction.geometry import surface_centroid  # noqa: E402
 from parcelpick_env.suction.quality import AP_DEFINITIONS, check_definition, definition_scorer, score_definition  # noqa: E402
 from parcelpick_env.suction.visibility import object_visibility  # noqa: E402
 from policies.base import Candidates, Policy  # noqa: E402
@@ -136,7 +137,7 @@ def _suctionnet_parcels(record: Record) -> list[ParcelState]:
     parcels = []
     for k, (asset_id, mesh) in enumerate(zip(np.asarray(record["object_asset_ids"]).reshape(-1),
                                              suctionnet_world_meshes(record))):
-        centroid = (mesh.triangles_center * mesh.area_faces[:, None]).sum(axis=0) / mesh.area
+        centroid = surface_centroid(mesh)
         asset = ParcelAsset(asset_id=str(asset_id), category="suctionnet", split="test", mesh=mesh, mass=1.0,  # type: ignore[arg-type]
                             com=centroid, rgba=(1.0, 1.0, 1.0, 1.0), extents=np.asarray(mesh.extents))
         parcels.append(ParcelState(object_id=k, body_id=-1, asset=asset, position=np.zeros(3),

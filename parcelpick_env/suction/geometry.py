@@ -77,6 +77,12 @@ def frame_rays(points: np.ndarray, normals: np.ndarray, u: np.ndarray, w: np.nda
     return o3d.core.Tensor.from_numpy(rays.reshape(-1, 6))  # shares memory, no copy
 
 
+def surface_centroid(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(3,) area-weighted centroid of a mesh's surface: the limit of a dense surface sample's mean (the centre
+    SuctionNet's wrench score uses), not the solid's centre of mass."""
+    return (mesh.triangles_center * mesh.area_faces[:, None]).sum(axis=0) / mesh.area
+
+
 def build_scene(meshes: Sequence[trimesh.Trimesh],
                 offsets: np.ndarray | None = None) -> o3d.t.geometry.RaycastingScene:
     """One ray scene holding ``meshes`` (optionally translated by ``offsets[i]``).

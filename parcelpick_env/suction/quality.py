@@ -22,6 +22,7 @@ the first three, and ``total`` multiplies in visibility.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
@@ -32,6 +33,7 @@ from parcelpick_env.suction.cup import CupSpec
 from parcelpick_env.suction.scorer import SuctionScorer, SuctionScores
 
 if TYPE_CHECKING:
+    from parcelpick_env.envs.config import EnvConfig
     from parcelpick_env.scene.scene import Scene
 
 Definition = Literal["paper", "suctionnet", "physical", "paper_compat"]
@@ -46,31 +48,21 @@ SUCTIONNET_LABEL_TIME = SuctionConfig(seal_model="suctionnet", wrench_model="suc
 PAPER_LABELS = SuctionConfig()  # spring seal, paper wrench
 
 
-def _env_suction() -> SuctionConfig:
-    from parcelpick_env.envs.config import EnvConfig  # the env's own cup; imported late (envs imports suction)
-
-    return EnvConfig().suction
-
-
-def _env_cup() -> CupSpec:
+@functools.cache
+def _env_config() -> "EnvConfig":
+    """The env's default config (frozen), built once; imported late because the envs package imports suction."""
     from parcelpick_env.envs.config import EnvConfig
 
-    return EnvConfig().grasp.cup
-
-
-def _env_seal_threshold() -> float:
-    from parcelpick_env.envs.config import EnvConfig
-
-    return float(EnvConfig().grasp.seal_threshold)
+    return EnvConfig()
 
 
 @dataclass(frozen=True)
 class PhysicalCell:
     """The env's cup as the ``physical`` definition sees it; defaults are ``EnvConfig()``'s."""
 
-    suction: SuctionConfig = field(default_factory=_env_suction)
-    cup: CupSpec = field(default_factory=_env_cup)
-    seal_threshold: float = field(default_factory=_env_seal_threshold)
+    suction: SuctionConfig = field(default_factory=lambda: _env_config().suction)
+    cup: CupSpec = field(default_factory=lambda: _env_config().grasp.cup)
+    seal_threshold: float = field(default_factory=lambda: float(_env_config().grasp.seal_threshold))
 
     def __post_init__(self) -> None:
         if self.suction.seal_model != "bellows":

@@ -17,7 +17,7 @@ from parcelpick_env.suction.collision import collision_scores
 from parcelpick_env.suction.config import SuctionConfig
 from parcelpick_env.suction.cup import CupSpec
 from parcelpick_env.suction.cup_seal import ContactSeal, bellows_seal
-from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, o3d_tensor, validate_meshes
+from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene, o3d_tensor, surface_centroid, validate_meshes
 from parcelpick_env.suction.physical import PhysicalGrasp, hanging_ratios, hull_seats, physical_tool
 from parcelpick_env.suction.seal import SealScene, seal_scores
 from parcelpick_env.suction.wrench import wrench_scores
@@ -75,8 +75,7 @@ class SuctionScorer:
         if self.masses is not None and (self.masses.shape != (len(self.meshes),) or not np.all(self.masses > 0)):
             raise ValueError(f"masses must be positive with shape ({len(self.meshes)},), got {self.masses!r}")
         # SuctionNet's wrench acts at the mean of a dense surface sample: the area-weighted surface centroid.
-        self.surface_centroids = np.array([(m.triangles_center * m.area_faces[:, None]).sum(axis=0) / m.area
-                                           for m in self.meshes]).reshape(-1, 3)
+        self.surface_centroids = np.array([surface_centroid(m) for m in self.meshes]).reshape(-1, 3)
         self._seal_scene = SealScene(self.meshes, config)
         everything = self.meshes + self.obstacles
         self._collision_scene = build_scene(everything) if everything else None
