@@ -65,9 +65,6 @@ class PhysicalGrasp:
         margin = np.clip(1.0 - np.nan_to_num(self.worst, nan=np.inf, posinf=np.inf), 0.0, 1.0)
         return seal.astype(np.float32), margin.astype(np.float32), np.asarray(self.collision, dtype=np.float32)
 
-    def take(self, rows: np.ndarray) -> "PhysicalGrasp":
-        return PhysicalGrasp(self.seal[rows], self.ratios[rows], self.collision[rows])
-
     @classmethod
     def concatenate(cls, parts: list["PhysicalGrasp"]) -> "PhysicalGrasp":
         return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(cls)))
