@@ -1,7 +1,8 @@
 """PyTorch view of a generated dataset: one scene's labelled point cloud per item.
 
 HDF5 files are opened lazily inside each DataLoader worker (see ``ShardedDataset``) and only the
-four arrays a model needs are read, so the dataset object is cheap to pickle to workers.
+four arrays a model needs are read, so the dataset object is cheap to pickle to workers. A GraspNet/SuctionNet
+root is served too, view by view (``dataset.suctionnet.views.open_store`` decides which a path is).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from dataset.storage import open_dataset
+from dataset.suctionnet.views import open_store
 
 ITEM_KEYS = ("points", "normals", "labels", "object_ids")
 
@@ -67,7 +68,7 @@ class ParcelSuctionDataset(Dataset):
             raise ValueError(f"jitter_std must be >= 0, got {jitter_std}")
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
-        self.store = open_dataset(root, verify=verify, checksum=verify_checksums)
+        self.store = open_store(root, verify=verify, checksum=verify_checksums)
         stored_split = self.store.config["split"]
         if split is not None and split != stored_split:
             raise ValueError(f"{root} holds the {stored_split!r} split, not {split!r}")

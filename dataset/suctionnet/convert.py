@@ -17,7 +17,7 @@ from typing import Any
 
 from dataset.storage import read_manifest, shard_name, write_manifest, write_shard
 from dataset.suctionnet.layout import SPLITS, SuctionNetLayoutError
-from dataset.suctionnet.reader import SOURCE, ReaderConfig, read_view
+from dataset.suctionnet.reader import LABEL_SET, SOURCE, ReaderConfig, read_view
 
 IMAGE_KEYS = ("rgb", "depth", "segmentation")  # dropped with images=False, as generate's --no-images
 
@@ -39,7 +39,7 @@ def import_views(graspnet_root: str | os.PathLike, out: str | os.PathLike, camer
         raise ValueError(f"scenes_per_shard must be >= 1, got {scenes_per_shard}")
     out.mkdir(parents=True, exist_ok=True)
     manifest_config = {"source": SOURCE, "graspnet_root": str(Path(graspnet_root).resolve()), "camera": camera,
-                       "views": [[int(s), int(a)] for s, a in views], "split": split,
+                       "views": [[int(s), int(a)] for s, a in views], "split": split, "labels": LABEL_SET,
                        "reader": dataclasses.asdict(config), "scenes": len(views),
                        "scenes_per_shard": scenes_per_shard, "store_images": images}
     shards = []

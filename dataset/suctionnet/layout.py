@@ -31,6 +31,11 @@ DEPTH_FACTOR = 1000.0  # depth PNG units per metre in GraspNet (meta.mat 'factor
 LABEL_OFFSET = 1  # label PNG value = object id + 1; 0 is background (graspnet-baseline's loader)
 
 
+# Table I's names for the three test splits (the paper's "seen / similar / novel"), in its column order.
+TEST_SPLITS: dict[str, str] = {"seen": "test_seen", "similar": "test_similar", "novel": "test_novel"}
+LABEL_DIRS = ("seal_label", "wrench_label", "suction_collision_label|collision_label")  # what training needs
+
+
 class SuctionNetLayoutError(ValueError):
     """A file of a GraspNet/SuctionNet tree is missing, unreadable or inconsistent; the message names it."""
 
@@ -41,6 +46,23 @@ def split_of_scene(scene: int) -> str:
         if scene in SPLITS[name]:
             return name
     return "custom"
+
+
+def is_suctionnet_root(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is laid out as GraspNet/SuctionNet (a ``scenes/`` folder) rather than a ParcelPick dataset
+    directory (a ``manifest.json``)."""
+    root = Path(path)
+    return (root / "scenes").is_dir() and not (root / "manifest.json").exists()
+
+
+def check_label_dirs(path: str | os.PathLike) -> None:
+    """One clear error if a GraspNet tree lacks SuctionNet's label folders (GraspNet-1Billion alone has none)."""
+    root = Path(path)
+    missing = [name for name in LABEL_DIRS if not any((root / alt).is_dir() for alt in name.split("|"))]
+    if missing:
+        raise SuctionNetLayoutError(f"{root}: a GraspNet tree without SuctionNet-1Billion's labels "
+                                    f"(no {', '.join(m.replace('|', ' or ') + '/' for m in missing)}); "
+                                    "add SuctionNet's label folders to this root")
 
 
 class Layout:

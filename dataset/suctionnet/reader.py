@@ -51,6 +51,8 @@ from dataset.suctionnet.layout import (
 from parcelpick_env.farthest_points import fixed_size_sample
 
 SOURCE = "suctionnet"
+# The label set a view carries (dataset.torch_dataset.label_key): SuctionNet's own seal / wrench / collision labels
+LABEL_SET = "suctionnet"
 ASSET_PREFIX = "suctionnet:"  # object_asset_ids of SuctionNet models: 'suctionnet:017' (not in AssetLibrary)
 CATEGORY = "suctionnet"  # SuctionNet objects have no parcel category
 # The table suctionnetAPI's evaluator adds (1 m x 1 m, 5 cm thick, top at z = 0) as a BinSpec: its floor is

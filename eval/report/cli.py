@@ -56,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="DDIM step counts tried on the main checkpoint")
     p.add_argument("--train-data", default=d.train_data, help="training data named in the ablation commands")
     p.add_argument("--train-args", default=d.train_args, help="main-run training flags repeated in those commands")
+    p.add_argument("--graspnet-root", default=None,
+                   help="SuctionNet-1Billion root: adds the paper's Table I (python -m eval.table_one)")
     p.add_argument("--quiet", action="store_true", help="no per-scene / per-episode progress on stderr")
     return p
 
@@ -76,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
                               skip_paper_compat=args.skip_paper_compat, label_physics=args.label_physics,
                               diffusion_checkpoint=args.diffusion_checkpoint, ablation_dir=args.ablation_dir,
                               ablation_steps=tuple(args.ablation_steps), train_data=args.train_data,
-                              train_args=args.train_args, progress=not args.quiet)
+                              train_args=args.train_args, progress=not args.quiet,
+                              graspnet_root=args.graspnet_root)
     except ValueError as exc:
         parser.error(str(exc))
     from parcelpick_env.cli import (

@@ -88,6 +88,7 @@ class ReportConfig:
     train_data: str = "data/train"  # only printed in the training commands of missing ablations
     train_args: str = ABLATION_TRAIN_ARGS  # the same settings for every variant, so each changes one thing only
     progress: bool = True
+    graspnet_root: str | None = None  # SuctionNet-1Billion root: adds Table I (eval/table_one.py); None: no section
 
     def __post_init__(self) -> None:
         if not self.policies:

@@ -100,6 +100,7 @@ def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out
     lines += ap_section(report)
     lines += _figure(figures, "precision_at_k", f"precision@k per policy ({HEADLINE_QUALITY})", out)
     lines += paper_compat_section(report)
+    lines += table_one_lines(report)
     lines += label_physics_section(report, out)
     paired = comparisons_against(DIFFUSION, policies)
     if paired:
@@ -175,6 +176,21 @@ def ap_section(report: dict[str, Any]) -> list[str]:
               "negative: what the channel takes away), under each definition; visibility's cost is AP+vis − AP.",
               "", channel_cost_table(policies, qualities), ""]
     return lines
+
+
+def table_one_lines(report: dict[str, Any]) -> list[str]:
+    """The Table I section when the report was given --graspnet-root: the tables, or the one line why not."""
+    result = report.get("table_one")
+    if result is None:
+        return []
+    from eval.table_one import format_markdown
+
+    lines = ["## SuctionNet-1Billion (paper Table I layout)", ""]
+    if "absent" in result or "error" in result:
+        return lines + [result.get("absent") or f"Table I failed: {result['error']}", ""]
+    lines += [format_markdown(result), ""]
+    lines += [f"Not available: {name} ({why})." for name, why in result.get("not_available", {}).items()]
+    return lines + ([""] if result.get("not_available") else [])
 
 
 def paper_compat_section(report: dict[str, Any]) -> list[str]:

@@ -254,7 +254,29 @@ def run_report(config: ReportConfig) -> dict[str, Any]:
             "ablations": [] if config.skip_ablations else evaluate_ablations(config, main_ap),
             "paper_compat": [] if config.skip_paper_compat else evaluate_paper_compat(config, policies),
             "label_physics": read_label_physics(config.label_physics),
+            "table_one": None if config.graspnet_root is None else evaluate_table_one(config),
             "provenance": provenance(config)}
+
+
+def evaluate_table_one(config: ReportConfig) -> dict[str, Any]:
+    """Table I (eval/table_one.py) for the report's policies that are among its rows, or the one line saying the
+    data is absent; a policy that cannot be made is left out with its reason. Never raises."""
+    from eval.table_one import POLICIES, absent_line, present_test_scenes, table_one_section
+
+    if not present_test_scenes(config.graspnet_root):  # before any policy is loaded
+        return {"absent": absent_line(config.graspnet_root)}
+    made = {name: load_policy(name, **_policy_kwargs(name, config)) for name in config.policies if name in POLICIES}
+    policies = {name: policy for name, (policy, _) in made.items() if policy is not None}
+    if not policies:
+        return {"error": f"none of {list(POLICIES)} could be made: "
+                         + "; ".join(f"{name}: {why}" for name, (_, why) in made.items())}
+    result, error = _guarded("Table I", lambda: table_one_section(
+        config.graspnet_root, policies,
+        progress=(lambda line: print(f"[report] Table I {line}", file=sys.stderr)) if config.progress else None))
+    if result is None:
+        return {"error": error}
+    result["not_available"] = {name: why for name, (policy, why) in made.items() if policy is None}
+    return result
 
 
 def load_clearance_source(path: str) -> dict[str, Any]:

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from dataset.storage import open_dataset
+from dataset.suctionnet.views import open_store
 from parcelpick_env.cli import check_input_dir, check_output_path, run_cli
 from policies.cao.config import CaoConfig
 from policies.cao.network import CaoNet, prepare_input
@@ -35,7 +35,7 @@ from policies.provenance import command_line, training_provenance
 def load_tensors(data_dir: str | os.PathLike, config: CaoConfig, max_scenes: int | None = None,
                  progress: bool = True) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """(S, 4, h, w) inputs and (S, 2, h, w) [seal, centre] targets for every stored scene."""
-    store = open_dataset(data_dir)
+    store = open_store(data_dir)  # a dataset directory or a SuctionNet root
     count = len(store) if max_scenes is None else min(len(store), max_scenes)
     if count == 0:
         raise ValueError(f"dataset {data_dir} holds no scenes")

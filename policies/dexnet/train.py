@@ -120,9 +120,9 @@ def build_samples(records: Iterable[Mapping[str, np.ndarray]], config: TrainConf
 
 def load_records(data_dir: str | Path) -> list[dict[str, np.ndarray]]:
     """The arrays training needs from every scene of a dataset directory made by ``dataset.generate``."""
-    from dataset.storage import open_dataset
+    from dataset.suctionnet.views import open_store
 
-    dataset = open_dataset(data_dir)
+    dataset = open_store(data_dir)  # a dataset directory or a SuctionNet root
     try:
         return [dataset.scene(i, keys=SCENE_KEYS) for i in range(len(dataset))]
     finally:
@@ -275,10 +275,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         raise SystemExit(f"error: {exc}") from exc
     records = load_records(args.data)
     command = command_line("policies.dexnet.train", argv)
-    from dataset.storage import read_manifest
+    from dataset.suctionnet.views import store_config
 
     metadata = {"command": command, "data": str(args.data), "num_scenes": len(records),
-                "dataset_config": read_manifest(args.data).get("config", {})}
+                "dataset_config": store_config(args.data)}
     _, history = train(records, config, out=args.out, metadata=metadata, progress=not args.no_progress,
                        started=started)
     print(f"trained on {history['train_samples']} samples ({history['train_positives']} positive) from "
