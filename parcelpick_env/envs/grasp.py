@@ -29,7 +29,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 import pybullet as p
@@ -58,6 +58,16 @@ LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump 
 LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
 WALL_NORMAL_Z = 0.5  # a static contact whose normal is within 60 deg of horizontal is a wall (else floor)
 TURN_STEP = math.radians(3.0)  # rad between IK points when the tool is turned down about the lip
+
+_T = TypeVar("_T")
+
+
+def _required(value: _T | None, what: str) -> _T:
+    """``value``, known to be set: a move reads what an earlier move of the attempt set (``_Pick``), and
+    one run out of order fails here, naming what is missing, instead of deep inside numpy or pybullet."""
+    if value is None:
+        raise RuntimeError(f"PickExecutor: {what} is not set yet (a move ran before the one that sets it)")
+    return value
 
 
 def cup_loads(contacts: Contacts, exempt: set[int], walls: set[int]) -> Contacts:
@@ -156,6 +166,11 @@ class _Pick:
     carry_axis: np.ndarray | None = None  # the tool axis while carrying: the contact axis, or straight down once turned
     com_in_tool: np.ndarray | None = None  # the held parcel's COM in the tool frame, as attached
     R_in_tool: np.ndarray | None = None  # and its rotation
+
+    @property
+    def held(self) -> ParcelState:
+        """The parcel the cup came down on (set by ``approach``), for the moves after it."""
+        return _required(self.parcel, "the contacted parcel (set by approach)")
 
 
 class PickExecutor:
@@ -380,7 +395,7 @@ class PickExecutor:
         return None if qs is None else np.asarray(qs[-1])
 
     def _hover(self, scene: Scene, pick: _Pick) -> MoveReport:
-        return self._free_move("hover", pick.q_hover)
+        return self._free_move("hover", _required(pick.q_hover, "the hover configuration (set by plan)"))
 
     def _descend(self, scene: Scene, pick: _Pick) -> MoveReport:
         """Straight down to the pre-grasp point, checked against the scene before it is run."""
@@ -401,7 +416,8 @@ class PickExecutor:
         def touched(contacts: list[Contact]) -> Contact | None:
             return next((c for c in contacts if c.link == arm.cup_link and c.normal_force > g.touch_force), None)
 
-        res = self._execute(pick.approach, stop=touched, allowed_links={arm.cup_link, arm.tip_link})
+        res = self._execute(_required(pick.approach, "the approach line (set by plan)"), stop=touched,
+                            allowed_links={arm.cup_link, arm.tip_link})
         if res.collision is not None:
             return self._report("approach", "collision", Failure("approach", res.link, body=res.collision.body),
                                 res.steps, t0)
@@ -424,10 +440,11 @@ class PickExecutor:
                             allowed_links={arm.cup_link, arm.tip_link})
         tip, orn = arm.tip_pose()
         axis = Rotation.from_quat(orn).as_matrix()[:, 2]
-        seal, hit, reason = self._seal_at(pick.parcel, self._seated_lip(pick.parcel.body_id, tip, axis), axis)
+        parcel = pick.held
+        seal, hit, reason = self._seal_at(parcel, self._seated_lip(parcel.body_id, tip, axis), axis)
         pick.seal, pick.contact_point, pick.contact_axis = seal, hit, axis
         if seal < g.seal_threshold:
-            return self._report("seal", "no_seal", Failure("seal", "suction_cup", reason, pick.parcel.body_id),
+            return self._report("seal", "no_seal", Failure("seal", "suction_cup", reason, parcel.body_id),
                                 res.steps, t0)
         return self._report("seal", steps=res.steps, t_start=t0)
 
@@ -470,7 +487,8 @@ class PickExecutor:
     def _attach(self, pick: _Pick) -> None:
         """Fixed constraint from the cup lip to the parcel at their present relative pose; the wrench
         is read from the cup's model (``HoldMonitor``), never from this constraint."""
-        c, arm, body = self.sim.client, self.arm, pick.parcel.body_id
+        c, arm, parcel = self.sim.client, self.arm, pick.held
+        body = parcel.body_id
         # before the filter change below, which drops the body's contact manifolds until the next step
         touching = contact_forces(c, body, {arm.body})
         pick.supports = {int(b) for b in touching.bodies}
@@ -485,9 +503,10 @@ class PickExecutor:
                                       child_p, childFrameOrientation=child_o, physicsClientId=c)
         p.changeConstraint(pick.cid, maxForce=1e5, physicsClientId=c)
         self._held = body
-        asset = pick.parcel.asset
+        asset = parcel.asset
         pick.monitor = HoldMonitor(self.grasp.cup, self.suction.cup_radius, self.suction.material_k,
-                                   self.sim.config.gravity, asset.mass, mesh_inertia(asset.mesh, asset.mass), pick.seal)
+                                   self.sim.config.gravity, asset.mass, mesh_inertia(asset.mesh, asset.mass),
+                                   _required(pick.seal, "the seal quality (set by seal)"))
         pick.x_axis = self.kin.tip_x(arm.q)
         tool_p, tool_R = self.kin.tool_pose(arm.q)
         com, R_body = self._body_state(body)
@@ -499,9 +518,10 @@ class PickExecutor:
         c = self.sim.client
         p.removeConstraint(pick.cid, physicsClientId=c)
         pick.cid = None
-        if self.sim.has_body(pick.parcel.body_id):
+        body = pick.held.body_id
+        if self.sim.has_body(body):
             for link in range(-1, p.getNumJoints(self.arm.body, physicsClientId=c)):
-                p.setCollisionFilterPair(self.arm.body, pick.parcel.body_id, link, -1, 1, physicsClientId=c)
+                p.setCollisionFilterPair(self.arm.body, body, link, -1, 1, physicsClientId=c)
         self._held = None
 
     def _body_state(self, body: int) -> tuple[np.ndarray, np.ndarray]:
@@ -532,8 +552,9 @@ class PickExecutor:
         count in full. A ring condition
         violated for ``CupSpec.violation_steps`` steps in a row breaks the seal: dropped.
         """
-        strike, client, body = self.arm.config.collision_force, self.sim.client, pick.parcel.body_id
+        strike, client, body = self.arm.config.collision_force, self.sim.client, pick.held.body_id
         walls = {b for b in exempt if self._is_static(b)}
+        monitor = _required(pick.monitor, "the hold monitor (set when the parcel is attached)")
 
         def check() -> tuple[str, Failure] | None:
             contacts = contact_forces(client, body, {self.arm.body})
@@ -544,8 +565,9 @@ class PickExecutor:
                 return "collision", Failure(move, "held parcel", body=hardest)
             loads = cup_loads(contacts, exempt, walls)
             # pose and velocity measured, acceleration as commanded (the executed trajectory's)
-            tool = ToolState(*self.kin.tool_motion(self.arm.q, self.arm.qd, self.arm.command[2]))
-            cause = pick.monitor.update(tool, *self._held_pose(pick, tool), loads.points, loads.forces)
+            qdd = _required(self.arm.command, "the arm's servoed command (set by Gen3Arm.execute)")[2]
+            tool = ToolState(*self.kin.tool_motion(self.arm.q, self.arm.qd, qdd))
+            cause = monitor.update(tool, *self._held_pose(pick, tool), loads.points, loads.forces)
             if cause is None:
                 return None
             if hardest is not None:  # the seal broke while the parcel was pressing on something: it struck it
@@ -561,8 +583,9 @@ class PickExecutor:
         g, arm = self.grasp, self.arm
         self._move, t0 = move, arm.sim_time
         tool = ToolState(*self.kin.tool_motion(arm.q, np.zeros_like(arm.q), np.zeros_like(arm.q)))
-        a_max = pick.monitor.allowed_acceleration(tool, *self._held_pose(pick, tool), g.carry_load_target,
-                                                  g.min_carry_acceleration)
+        monitor = _required(pick.monitor, "the hold monitor (set when the parcel is attached)")
+        a_max = monitor.allowed_acceleration(tool, *self._held_pose(pick, tool), g.carry_load_target,
+                                             g.min_carry_acceleration)
         if move == "transport":  # the chord, round the base where it dips inside the arm's reach, or turned down
             traj, why = self._transport_line(arm.q, end, pick, a_max)
         else:
@@ -571,7 +594,7 @@ class PickExecutor:
         if traj is None:
             return self._report(move, "unreachable", Failure(move, condition=why), t_start=t0)
         if move == "transport":  # the held parcel is part of the check: it must clear the rim and the pile
-            hit = self._line_collision(traj, Attachment.current(arm, pick.parcel.body_id))
+            hit = self._line_collision(traj, Attachment.current(arm, pick.held.body_id))
             if hit is not None:
                 return self._report(move, "unreachable", Failure(move, hit.link, body=hit.body), t_start=t0)
         if move == "lift":
@@ -590,7 +613,8 @@ class PickExecutor:
         """A carrying line at the contact axis, the cup's yaw held; failing that with the yaw free (the
         held yaw may need an IK branch switch: the cup may then turn, and the wrench has I alpha)."""
         g = self.grasp
-        axis = pick.contact_axis if pick.carry_axis is None else pick.carry_axis
+        axis = (_required(pick.contact_axis, "the contact axis (set by seal)") if pick.carry_axis is None
+                else pick.carry_axis)
         traj, why = self._line(q0, end, axis, g.carry_dt, g.carry_speed, a_max, pick.x_axis)
         if traj is None:
             traj, why = self._line(q0, end, axis, g.carry_dt, g.carry_speed, a_max)
@@ -646,7 +670,8 @@ class PickExecutor:
         if jump > MAX_IK_JUMP:
             return None, f"ik jumped {jump:.2f} rad turning the tool down"
         traj = path_trajectory(joints, arm.limits, g.carry_dt)
-        lever = max(float(np.linalg.norm(pick.com_in_tool)), 1e-3)
+        com_in_tool = _required(pick.com_in_tool, "the held parcel's centre of mass (set when attached)")
+        lever = max(float(np.linalg.norm(com_in_tool)), 1e-3)
         motion = [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
         w = max(float(np.linalg.norm(m[3])) for m in motion) * lever
         a = max(float(np.linalg.norm(m[5])) for m in motion) * lever
@@ -712,7 +737,7 @@ class PickExecutor:
         """Tip height for carrying: the pile top (every other parcel and fixture) or the rim, whichever
         is higher, plus the clearance and the held parcel's extent below the lip."""
         spec = scene.bin
-        body = pick.parcel.body_id
+        body = pick.held.body_id
         top = spec.floor_z + spec.wall_height
         for b in self._obstacles(scene):
             if b != body and self.sim.has_body(b):
@@ -751,6 +776,6 @@ class PickExecutor:
     def _release(self, pick: _Pick) -> None:
         t0 = self.arm.sim_time
         self._detach(pick)
-        self.sim.remove(pick.parcel.body_id)
+        self.sim.remove(pick.held.body_id)
         self._report("release", t_start=t0)
 

@@ -292,7 +292,7 @@ class Gen3Arm:
                                x_axis, iterations, damping)
 
     def cartesian_path(self, start_q: np.ndarray, points: np.ndarray, axis: np.ndarray,
-                       x_axis: Sequence[float] | None = None) -> list[np.ndarray] | None:
+                       x_axis: Sequence[float] | np.ndarray | None = None) -> list[np.ndarray] | None:
         """IK along a polyline of tip positions, each seeded by the previous answer (None if any fails).
         ``x_axis`` also holds the cup's yaw fixed along the way."""
         path, q = [], start_q
