@@ -13,10 +13,14 @@ dominates the cost (benchmarks/bench_policies.py); ``downsample=4`` (KNN 16) is 
 faster for closed-loop use, with a coarser candidate grid.
 
 Workspace. SuctionNet restricts candidates to the objects' image region; a policy here may not see
-ground truth, so candidates are restricted to ``config.workspace`` if set, else to the bounding box of
-the observed cloud (the dataset's clouds are cropped to the bin; the env's are not, so closed-loop
-runs should use ``NormalStdConfig.for_bin``). The bin floor stays eligible: it is flat, and Normal-STD
-has no notion of objects.
+ground truth, so candidates are restricted to the inside of the bin: ``config.workspace`` if set, else
+the env's ``info['workspace']`` (``BinSpec.workspace()``, the cell's known geometry), else the bounding
+box of the observed cloud. That box is narrowed by the background a real cell masks out: the floor
+(``floor_clearance``) and the walls (``wall_clearance``, one cup radius). The depth image sees the
+bin's inner wall faces, the flattest surfaces left once the floor is gone; a cup sent along their
+horizontal normal strikes the wall on the approach or cannot descend past the rim (measured in closed
+loop: every pick of the unmasked policy went there, 0% R_grasp). A cup centred closer to a wall than
+its radius cannot seat there in any case. Normal-STD still has no notion of objects or of reachability.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import numpy as np
 import open3d as o3d
 from scipy.ndimage import uniform_filter
 
+from parcelpick_env.suction.config import CELL_CUP_RADIUS
 from policies.base import Candidates, Policy
 from policies.heatmap import box_filter, grid_topk, pixels_to_world
 from policies.observation import camera, check_workspace, depth_image, in_box, workspace
@@ -59,6 +64,9 @@ class NormalStdConfig:
     # Empty-bin background removal: pixels this close above the workspace floor are not candidates
     # (the flat bin floor is otherwise the best-scoring surface in view).
     floor_clearance: float = 0.004
+    # Bin-wall removal: pixels closer than this to the workspace's side faces (the bin's inner walls) in x
+    # or y are not candidates; the cell's cup radius, so the lip clears the wall.
+    wall_clearance: float = CELL_CUP_RADIUS
 
     def __post_init__(self) -> None:
         for name in ("downsample", "knn", "min_knn", "std_window", "smooth_window", "cell", "max_candidates"):
@@ -67,8 +75,9 @@ class NormalStdConfig:
                 raise ValueError(f"NormalStdConfig.{name} must be a positive integer, got {value!r}")
         if self.min_knn < 3:
             raise ValueError(f"NormalStdConfig.min_knn must be >= 3 to fit a plane, got {self.min_knn}")
-        if not self.floor_clearance >= 0:
-            raise ValueError(f"NormalStdConfig.floor_clearance must be >= 0, got {self.floor_clearance!r}")
+        for name in ("floor_clearance", "wall_clearance"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"NormalStdConfig.{name} must be >= 0, got {getattr(self, name)!r}")
         if not self.nms_radius >= 0:
             raise ValueError(f"NormalStdConfig.nms_radius must be >= 0, got {self.nms_radius!r}")
         if self.workspace is not None:
@@ -110,11 +119,12 @@ def _depth_and_calibration(obs: Mapping[str, np.ndarray], info: Mapping[str, Any
     return depth, K, T
 
 
-def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray], box, floor_clearance: float) -> np.ndarray:
-    """Pixels inside ``box`` (else the observed cloud's bounding box) and clear of its floor.
+def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray], box, floor_clearance: float,
+               wall_clearance: float) -> np.ndarray:
+    """Pixels inside ``box`` (else the observed cloud's bounding box), clear of its floor and side walls.
 
-    The depth image also sees the floor around the bin and the bin floor itself, the flattest
-    surfaces in view; without this mask every top candidate would land there.
+    The depth image also sees the floor around the bin, the bin floor and the bin's inner walls, the
+    flattest surfaces in view; without this mask every top candidate would land there.
     """
     if box is not None:
         lo, hi = np.asarray(box, dtype=np.float64)
@@ -124,7 +134,11 @@ def _workspace(fmap: FlatnessMap, obs: Mapping[str, np.ndarray], box, floor_clea
         if len(cloud) == 0:
             return fmap.valid
         lo, hi = cloud.min(axis=0), cloud.max(axis=0)
-    lo = lo + np.array([0.0, 0.0, floor_clearance])
+    lo = lo + np.array([wall_clearance, wall_clearance, floor_clearance])
+    hi = hi - np.array([wall_clearance, wall_clearance, 0.0])
+    if np.any(lo >= hi):
+        raise ValueError(f"NormalStdConfig.wall_clearance ({wall_clearance}) and floor_clearance ({floor_clearance}) "
+                         f"leave no workspace: {lo.round(3).tolist()} to {hi.round(3).tolist()}")
     return fmap.valid & in_box(fmap.points, lo, hi)
 
 
@@ -175,7 +189,8 @@ class NormalStdPolicy(Policy):
             raise ValueError(f"top_k must be >= 1, got {top_k}")
         fmap = self.flatness(obs, info)
         box = self.config.workspace if self.config.workspace is not None else workspace(info, "Normal-STD")
-        heat = np.where(_workspace(fmap, obs, box, self.config.floor_clearance), fmap.heat, -np.inf)
+        cfg = self.config
+        heat = np.where(_workspace(fmap, obs, box, cfg.floor_clearance, cfg.wall_clearance), fmap.heat, -np.inf)
         rows, cols, scores = grid_topk(heat, self.config.effective_cell, self.config.max_candidates)
         return select_candidates(fmap.points[rows, cols], fmap.normals[rows, cols], scores, top_k=top_k,
                                  nms_radius=self.config.nms_radius)

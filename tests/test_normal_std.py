@@ -151,3 +151,53 @@ def test_normal_std_stays_inside_the_observed_workspace(box_scene):
     box = ((-0.1, -0.1, 0.05), (0.3, 0.2, 0.2))  # the upper half of the box: its top and two visible sides
     on_box = NormalStdPolicy(NormalStdConfig(workspace=box)).predict(obs, info, top_k=50)
     assert len(on_box) > 3 and np.all((on_box.points >= np.array(box[0])) & (on_box.points <= np.array(box[1])))
+
+
+BIN = BinSpec(inner_size=(0.40, 0.30), wall_height=0.20)
+BALL_CENTRE, BALL_RADIUS = np.array([0.05, 0.0, 0.05]), 0.05
+
+
+def _render_bin_scene(width: int = 320, height: int = 240, focal: float = 200.0):
+    """Depth image of ``BIN`` (floor and walls, ``BinSpec.meshes``) holding one ball, from a camera 0.7 m above
+    its centre looking straight down, with the env's ``info['workspace']``. Nothing on the ball is flat, so the
+    bin's inner walls are the flattest surfaces in view once the floor is masked, as in the env's cell."""
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=BALL_RADIUS)
+    ball.apply_translation(BALL_CENTRE)
+    scene = o3d.t.geometry.RaycastingScene()
+    for mesh in BIN.meshes() + [ball]:
+        scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                            o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    K = np.array([[focal, 0, width / 2 - 0.5], [0, focal, height / 2 - 0.5], [0, 0, 1.0]])
+    cam_to_world = np.eye(4)
+    cam_to_world[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    cam_to_world[:3, 3] = (0.0, 0.0, 0.7)
+    rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
+        o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(cam_to_world)), width, height)
+    t_hit = scene.cast_rays(rays)["t_hit"].numpy()
+    z_along_ray = (rays.numpy()[..., 3:] @ cam_to_world[:3, :3])[..., 2]
+    depth = np.where(np.isfinite(t_hit), t_hit * z_along_ray, 0.0).astype(np.float32)
+    return {"depth": depth}, {"intrinsics": K, "extrinsics": cam_to_world, "workspace": BIN.workspace()}
+
+
+def _wall_gap(points: np.ndarray) -> np.ndarray:
+    """Horizontal distance from each point to the nearest inner wall of ``BIN``."""
+    half = np.asarray(BIN.inner_size) / 2
+    return np.min(half - np.abs(points[:, :2] - np.asarray(BIN.center_xy)), axis=1)
+
+
+def test_normal_std_never_picks_the_bin_walls():
+    """The bin's inner walls are flat and in view; a cup sent along their horizontal normal strikes them
+    (closed loop: every pick went there). ``wall_clearance`` masks them as ``floor_clearance`` masks the floor."""
+    obs, info = _render_bin_scene()
+    unmasked = NormalStdPolicy(NormalStdConfig(wall_clearance=0.0)).predict(obs, info, top_k=20)
+    assert _wall_gap(unmasked.points[:1])[0] < 0.005  # the scene tests something: unmasked, the best pick is a wall
+    cfg = NormalStdConfig()
+    cands = NormalStdPolicy(cfg).predict(obs, info, top_k=20)
+    assert len(cands) > 0 and np.all(_wall_gap(cands.points) >= cfg.wall_clearance - 1e-9)
+    assert np.linalg.norm(cands.best_action()[:3] - BALL_CENTRE) < BALL_RADIUS + 0.005  # the ball, all that is left
+    with pytest.raises(ValueError, match="wall_clearance"):
+        NormalStdConfig(wall_clearance=-0.001)
+    with pytest.raises(ValueError, match="wall_clearance"):  # wider than half the bin: nothing left to pick
+        NormalStdPolicy(NormalStdConfig(wall_clearance=0.2)).predict(obs, info)
