@@ -32,7 +32,7 @@ from dataset.suctionnet.layout import CAMERAS, SPLITS, TEST_SPLITS, SuctionNetLa
 from dataset.suctionnet.reader import ReaderConfig, read_view
 from eval.ap import APConfig, evaluate_scene
 from eval.metrics import SceneAP, aggregate_ap
-from eval.paper_results import METHOD_LABELS
+from eval.paper_results import METHOD_LABELS, TABLE_I
 from eval.stats import format_interval
 from policies.base import Policy
 
@@ -42,10 +42,6 @@ TOPS: dict[str, tuple[str, ...]] = {"Top-50": ("AP", "AP0.8", "AP0.4"), "Top-1":
                                                                                   "top1_AP0.4")}
 COLUMNS = ("AP", "AP0.8", "AP0.4")
 QUALITIES = ("suctionnet", "paper_compat")  # definitions that need no masses (SuctionNet has none)
-# The paper's Table I, (camera, split, top, policy) -> (AP, AP0.8, AP0.4). Its values could not be read on the
-# machines this project was built on, so none is recorded yet; every "paper" cell says so rather than guess.
-PAPER_TABLE_I: dict[tuple[str, str, str, str], tuple[float, float, float]] = {}
-NOT_RECORDED = "not recorded"
 
 
 def absent_line(root: str | Path | None) -> str:
@@ -156,11 +152,11 @@ def run_table_one(config: TableOneConfig, policies: Mapping[str, Policy],
                                                                config, progress)}
     return {"graspnet_root": str(config.graspnet_root), "config": asdict(config), "policies": list(policies),
             "quality": config.ap.quality, "cells": cells, "seconds": time.perf_counter() - started,
-            "paper": {"|".join(key): list(value) for key, value in PAPER_TABLE_I.items()}}
+            "paper": {"|".join(key): list(value) for key, value in TABLE_I.items()}}
 
 
 def _paper_cells(camera: str, split: str, top: str, name: str) -> list[str]:
-    values = PAPER_TABLE_I.get((camera, split, top, name))
+    values = TABLE_I.get((camera, split, top, name))
     return [f"{v:.2f}" for v in values] if values is not None else ["–"] * len(COLUMNS)
 
 
@@ -189,9 +185,6 @@ def format_markdown(result: dict[str, Any]) -> str:
                 lines.append(f"| {METHOD_LABELS.get(name, name)} (paper) | " + " | ".join(paper) + " |")
             counts = ", ".join(f"{s} {len(cells[s]['scenes'])} scenes / {cells[s]['views']} views" for s in splits)
             lines.append(f"\n{counts}.")
-    if not result["paper"]:
-        lines += ["", f"The paper's Table I values are {NOT_RECORDED} in this project (`eval/table_one.py`, "
-                  "`PAPER_TABLE_I`): its paper rows show –."]
     return "\n".join(lines)
 
 
