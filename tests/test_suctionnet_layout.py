@@ -12,11 +12,10 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
+from generated_records import generate_records
 import scipy.io
 from scipy.spatial.transform import Rotation
 
-from dataset.config import GenerationConfig
-from dataset.generate import generate
 from dataset.storage import open_dataset
 from dataset.suctionnet.convert import import_views, split_views
 from dataset.suctionnet.layout import DEPTH_FACTOR, LABEL_OFFSET, Layout, SuctionNetLayoutError, read_png
@@ -33,10 +32,7 @@ TINY = dict(width=160, height=120, min_parcels=2, max_parcels=4, annotation_poin
 @pytest.fixture(scope="module")
 def native(tmp_path_factory):
     out = tmp_path_factory.mktemp("native")
-    generate(out, GenerationConfig(**TINY), workers=1, progress=False)
-    store = open_dataset(out)
-    records = [store.scene(i) for i in range(len(store))]
-    store.close()
+    records = generate_records(out, **TINY)
     return out, records
 
 

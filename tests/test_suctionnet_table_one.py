@@ -12,10 +12,8 @@ import shutil
 
 import numpy as np
 import pytest
+from generated_records import generate_records
 
-from dataset.config import GenerationConfig
-from dataset.generate import generate
-from dataset.storage import open_dataset
 from dataset.suctionnet.layout import SPLITS, TEST_SPLITS, Layout
 from dataset.suctionnet.reader import ReaderConfig
 from dataset.suctionnet.writer import WriterConfig, write_records
@@ -53,10 +51,7 @@ def _second_view(root, scene):
 def trees(tmp_path_factory):
     """(native dataset dir, tree with sidecars = the native records, tree without = as real SuctionNet data)."""
     native = tmp_path_factory.mktemp("native")
-    generate(native, GenerationConfig(**TINY), workers=1, progress=False)
-    store = open_dataset(native)
-    records = [store.scene(i) for i in range(len(store))]
-    store.close()
+    records = generate_records(native, **TINY)
     base = tmp_path_factory.mktemp("sn")
     exact, bare = base / "exact", base / "bare"
     write_records(records, exact, scenes=list(SCENES), config=WriterConfig(camera=CAMERA))

@@ -12,11 +12,9 @@ import shutil
 
 import numpy as np
 import pytest
+from generated_records import generate_records
 import torch
 
-from dataset.config import GenerationConfig
-from dataset.generate import generate
-from dataset.storage import open_dataset
 from dataset.suctionnet.layout import Layout, SuctionNetLayoutError, is_suctionnet_root
 from dataset.suctionnet.reader import read_view
 from dataset.suctionnet.views import open_store, store_config, suctionnet_views
@@ -31,10 +29,7 @@ TINY = dict(width=160, height=120, min_parcels=2, max_parcels=4, annotation_poin
 @pytest.fixture(scope="module")
 def tree(tmp_path_factory):
     native = tmp_path_factory.mktemp("native")
-    generate(native, GenerationConfig(**TINY), workers=1, progress=False)
-    store = open_dataset(native)
-    records = [store.scene(i) for i in range(len(store))]
-    store.close()
+    records = generate_records(native, **TINY)
     root = tmp_path_factory.mktemp("sn") / "graspnet"
     write_records(records, root, scenes=list(SCENES), config=WriterConfig(camera=CAMERA))
     for scene in SCENES:
