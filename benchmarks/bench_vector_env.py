@@ -4,8 +4,8 @@ Each worker process owns one env and its own EGL renderer (``parcelpick_env/sim/
 scripted top-patch picker (a few KD-tree queries, cheap beside the env) chooses every action;
 ``autoreset_mode=SAME_STEP`` resets a finished episode inside the step that ended it, so every
 vector step is one attempt per env and pile builds count against the rate, as they do in training.
-Open3D's OpenMP pool is limited to one thread per process (``--omp-threads``), so N workers use N
-cores rather than fighting over them. Prints one markdown table row per worker count (with the
+Each worker bounds its native thread pools (Open3D's oneTBB and OpenMP, ``--worker-threads``, by
+``parcelpick_env.parallel.limit_worker_threads``), so N workers use N cores rather than fighting over them. Prints one markdown table row per worker count (with the
 workers' CPU seconds per attempt, which other load on the machine does not inflate), and the speed-up.
 
     python benchmarks/bench_vector_env.py --envs 1 2 --seconds 60
@@ -18,12 +18,21 @@ import os
 import resource
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def _worker_env(env, threads: int):
+    """Runs in the worker process as gymnasium builds its env there: bound its thread pools, drop step infos."""
+    from parcelpick_env.parallel import limit_worker_threads
+
+    limit_worker_threads(threads)
+    return _without_info(env)
 
 
 def _without_info(env):
@@ -48,16 +57,18 @@ def _actions(obs: dict[str, np.ndarray], n: int) -> np.ndarray:
     return np.stack([top_patch_action({k: obs[k][i] for k in ("points", "normals")}) for i in range(n)])
 
 
-def attempts_per_second(n_envs: int, seconds: float, seed: int, env_kwargs: dict, context: str) -> dict:
+def attempts_per_second(n_envs: int, seconds: float, seed: int, env_kwargs: dict, context: str,
+                        worker_threads: int = 1) -> dict:
     """Run ``n_envs`` async envs for about ``seconds`` of stepping (after the first reset)."""
     import gymnasium as gym
 
     import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
 
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    parent_before = resource.getrusage(resource.RUSAGE_SELF)
     envs = gym.make_vec("ParcelPick-v0", num_envs=n_envs, vectorization_mode="async",
                         vector_kwargs={"context": context, "autoreset_mode": gym.vector.AutoresetMode.SAME_STEP},
-                        wrappers=[_without_info], **env_kwargs)
+                        wrappers=[partial(_worker_env, threads=worker_threads)], **env_kwargs)
     try:
         started = time.perf_counter()
         obs, _ = envs.reset(seed=seed)
@@ -73,10 +84,13 @@ def attempts_per_second(n_envs: int, seconds: float, seed: int, env_kwargs: dict
     finally:
         envs.close()  # joins the workers, so their CPU time is counted below (spawn: they are our children)
     cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    parent_after = resource.getrusage(resource.RUSAGE_SELF)
+    parent = (parent_after.ru_utime + parent_after.ru_stime) - (parent_before.ru_utime + parent_before.ru_stime)
     cpu = (cpu_after.ru_utime + cpu_after.ru_stime) - (cpu_before.ru_utime + cpu_before.ru_stime)
     attempts = steps * n_envs
     return {"envs": n_envs, "attempts": attempts, "wall": wall, "rate": attempts / wall, "episodes": episodes,
-            "successes": successes, "first_reset": first_reset, "cpu_per_attempt": cpu / max(attempts, 1)}
+            "successes": successes, "first_reset": first_reset, "cpu_per_attempt": cpu / max(attempts, 1),
+            "parent_cpu_per_attempt": parent / max(attempts, 1)}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -92,11 +106,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--context", default="spawn", choices=("fork", "forkserver", "spawn"),
                     help="worker start method (spawn: workers are children, so their CPU time is measured)")
-    ap.add_argument("--omp-threads", type=int, default=1, help="OpenMP threads per worker (Open3D normals)")
+    ap.add_argument("--worker-threads", type=int, default=1,
+                    help="native threads per worker (Open3D's oneTBB and OpenMP pools)")
     args = ap.parse_args(argv)
-    if min(args.envs) < 1 or args.seconds <= 0:
-        ap.error("--envs must be >= 1 and --seconds > 0")
-    os.environ["OMP_NUM_THREADS"] = str(args.omp_threads)  # inherited by the workers
+    if min(args.envs) < 1 or args.seconds <= 0 or args.worker_threads < 1:
+        ap.error("--envs and --worker-threads must be >= 1 and --seconds > 0")
+    # OpenMP reads this when a worker first imports Open3D, which gymnasium does before applying the wrappers.
+    os.environ["OMP_NUM_THREADS"] = str(args.worker_threads)
 
     from parcelpick_env.camera.config import CameraConfig
 
@@ -105,13 +121,13 @@ def main(argv: list[str] | None = None) -> None:
     print(f"# ParcelPick-v0 AsyncVectorEnv ({args.context}), {args.parcels} {args.objects} {args.layout} parcels, "
           f"{args.width}x{args.height}, {args.points} points, {os.cpu_count()} CPUs, "
           f"load average before {os.getloadavg()[0]:.2f}")
-    print("| envs | attempts | wall s | attempts/s | worker CPU s/attempt | episodes | successes | first reset s |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| envs | attempts | wall s | attempts/s | worker CPU s/attempt | parent CPU s/attempt | episodes | successes | first reset s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     rates = {}
     for n in args.envs:
-        r = attempts_per_second(n, args.seconds, args.seed, env_kwargs, args.context)
+        r = attempts_per_second(n, args.seconds, args.seed, env_kwargs, args.context, args.worker_threads)
         rates[n] = r["rate"]
-        print(f"| {n} | {r['attempts']} | {r['wall']:.1f} | {r['rate']:.2f} | {r['cpu_per_attempt']:.2f} | "
+        print(f"| {n} | {r['attempts']} | {r['wall']:.1f} | {r['rate']:.2f} | {r['cpu_per_attempt']:.2f} | {r['parent_cpu_per_attempt']:.3f} | "
               f"{r['episodes']} | {r['successes']} | "
               f"{r['first_reset']:.1f} |", flush=True)
     base = rates.get(1)

@@ -28,6 +28,7 @@ from tqdm import tqdm
 import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.cli import check_output_path, run_cli
+from parcelpick_env.parallel import limit_worker_threads
 from policies.provenance import command_line, training_provenance
 from policies.sb3.features import DEFAULT_GRID, depth_features
 from policies.sb3.model_io import save_model
@@ -78,9 +79,11 @@ def make_env(seed: int, num_parcels: int = 3, layout: str = "scattered", object_
     return env
 
 
-def _monitored_env(seed: int, num_parcels: int, layout: str, object_set: str) -> gym.Env:
+def _monitored_env(seed: int, num_parcels: int, layout: str, object_set: str, worker: bool = False) -> gym.Env:
     from stable_baselines3.common.monitor import Monitor
 
+    if worker:  # one of several processes on the machine: one core each (parcelpick_env/parallel.py)
+        limit_worker_threads()
     return Monitor(make_env(seed, num_parcels, layout, object_set))
 
 
@@ -91,7 +94,7 @@ def make_vec_env(n_envs: int, seed: int, num_parcels: int = 3, layout: str = "sc
     with ``seed + i``."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    fns = [partial(_monitored_env, seed + i, num_parcels, layout, object_set) for i in range(n_envs)]
+    fns = [partial(_monitored_env, seed + i, num_parcels, layout, object_set, n_envs > 1) for i in range(n_envs)]
     return DummyVecEnv(fns) if n_envs == 1 else SubprocVecEnv(fns)
 
 
