@@ -10,7 +10,7 @@ import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 from tqdm.auto import tqdm
 
@@ -100,7 +100,7 @@ def _ray_map(fn: Callable[[T], R], items: list[T], workers: int, address: str | 
     import ray
 
     init_ray(address, num_cpus=None if address else workers)
-    remote_fn = ray.remote(num_cpus=1)(_in_limited_worker)
+    remote_fn: Any = ray.remote(num_cpus=1)(_in_limited_worker)  # a Ray RemoteFunction
     refs = [remote_fn.remote(fn, item) for item in items]
     for ref in refs:  # in submission order, so output order is backend-independent
         yield ray.get(ref)
