@@ -132,9 +132,9 @@ def _generate(out: str, scenes: int, args: Sequence[str], cfg: ResultsConfig) ->
     return run
 
 
-def _train_variant(variant, cfg: ResultsConfig) -> Callable[[], Any]:
+def _train_variant(variant, seed: int, cfg: ResultsConfig) -> Callable[[], Any]:
     def run() -> dict[str, Any]:
-        command = orchestration.train_command(variant, cfg.report).split()
+        command = orchestration.train_command(variant, cfg.report, seed).split()
         return _subprocess(command[command.index("-m"):])  # this interpreter, not the command's .venv path
     return run
 
@@ -166,8 +166,9 @@ def plan(cfg: ResultsConfig) -> list[Part]:
     if cfg.train:
         parts.append(Part("data/train", work / "data" / "train.json",
                           _generate(r.train_data, cfg.train_scenes, TRAIN_DATA_ARGS, cfg)))
-        parts += [Part(f"train/{v.name}", work / "train" / f"{v.name}.json", _train_variant(v, cfg), ("data/train",))
-                  for v in TRAINED_VARIANTS]
+        parts += [Part(f"train/{v.name}/seed{seed}", work / "train" / v.name / f"seed{seed}.json",
+                       _train_variant(v, seed, cfg), ("data/train",))
+                  for seed in r.ablation_seeds for v in TRAINED_VARIANTS]
     parts += [Part(f"ap/{name}", work / "ap" / f"{name}.json", _ap_part(name, r), ("data/test",))
               for name in r.policies]
     if not r.skip_clearance:
@@ -289,6 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results/RESULTS.md")
     p.add_argument("--work", default=d.work, help="finished parts are kept here")
     p.add_argument("--ablation-dir", default=d.report.ablation_dir)
+    p.add_argument("--ablation-seeds", nargs="+", type=int, default=list(d.report.ablation_seeds),
+                   help="training seeds of every ablation variant (--train trains each)")
     p.add_argument("--skip-clearance", action="store_true")
     p.add_argument("--skip-ablations", action="store_true")
     p.add_argument("--skip-benchmarks", action="store_true")
@@ -303,7 +306,8 @@ def config_from_args(args: argparse.Namespace) -> ResultsConfig:
                           seed=args.seed, workers=args.workers, backend=args.backend,
                           ray_address=args.ray_address, out=args.out,
                           skip_clearance=args.skip_clearance, skip_ablations=args.skip_ablations,
-                          ablation_dir=args.ablation_dir, train_data=args.train_data, progress=False)
+                          ablation_dir=args.ablation_dir, ablation_seeds=tuple(args.ablation_seeds),
+                          train_data=args.train_data, progress=False)
     return ResultsConfig(report=report, work=args.work, test_scenes=args.test_scenes, train=args.train,
                          benchmarks=not args.skip_benchmarks, force=tuple(args.force))
 

@@ -57,8 +57,10 @@ def report(tmp_path: Path) -> dict:
     config = ReportConfig(test_data=str(tmp_path), objects=("rectangular",), layouts=("scattered",),
                           out=str(tmp_path / "RESULTS.md"), label_physics=str(tmp_path / "absent.json"))
     missing = [{"name": v.name, "kind": "trained", "description": v.description, "paper": list(v.paper) if v.paper else None,
-                "checkpoint": f"runs/ablations/{v.name}/best.pt", "command": f"train {' '.join(v.train_flags)}",
-                "ap": None, "reason": None, "status": "not trained"} for v in TRAINED_VARIANTS]
+                "ap": None, "reason": None, "status": "not trained",
+                "runs": [{"seed": 0, "checkpoint": f"runs/ablations/{v.name}/seed0/best.pt", "status": "not trained",
+                          "command": f"train {' '.join(v.train_flags)}", "ap": None, "val_ap_proxy": None}]}
+               for v in TRAINED_VARIANTS]
     steps = {"name": "infer5", "kind": "inference_steps", "description": "main checkpoint, sampled with 5 DDIM steps",
              "paper": [28.10, 22.99, 29.86, 181], "checkpoint": "x", "command": None, "status": "ok", "reason": None,
              "ap": _ap([[0.1, 0.5]])}
@@ -152,21 +154,26 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     rows = evaluate_ablations(config)
     assert rows[0]["name"] == "infer5" and rows[0]["status"] == "not available" and rows[0]["ap"] is None
     trained = {row["name"]: row for row in rows[1:]}
-    assert set(trained) == {"reference", "no_segment_levers", "no_normals", "no_visibility", "pointnet", "steps5",
-                            "steps10", "steps15"}
-    assert all(row["status"] == "not trained" for row in trained.values())
-    assert trained["no_normals"]["command"] == (
-        f".venv/bin/python -m policies.diffusion.train --data data/train --out {tmp_path}/ablations/no_normals "
-        "--preset cpu --steps 1000 --batch-size 4 --lr 1e-3 --seed 0 --threads 1 --workers 0 --no-normals")
-    assert trained["reference"]["command"].endswith("--workers 0")
-    assert trained["steps10"]["command"].endswith("--inference-steps 10")
+    assert set(trained) == {"reference", "no_segment_levers", "no_normals", "no_visibility", "pointnet",
+                            "physical_labels", "steps5", "steps10", "steps15"}
+    assert all(row["status"] == "not trained" and [run["seed"] for run in row["runs"]] == [0, 1, 2]
+               for row in trained.values())
+    assert trained["no_normals"]["runs"][1]["command"] == (
+        f".venv/bin/python -m policies.diffusion.train --data data/train --out {tmp_path}/ablations/no_normals/seed1 "
+        "--preset cpu --steps 1000 --batch-size 4 --lr 1e-3 --threads 1 --workers 0 --seed 1 --no-normals")
+    assert trained["reference"]["runs"][2]["command"].endswith("--workers 0 --seed 2")
+    assert trained["steps10"]["runs"][0]["command"].endswith("--inference-steps 10")
+    assert trained["physical_labels"]["runs"][0]["command"].endswith("--label-set physical")
     assert trained["pointnet"]["paper"][0] == 38.39
-    assert trained["no_segment_levers"]["command"].endswith("--no-segment-levers")
+    assert trained["no_segment_levers"]["runs"][0]["command"].endswith("--no-segment-levers")
     assert trained["no_segment_levers"]["paper"] is None  # not in the paper
+    table = ablation_table(rows)
+    assert f"`{trained['pointnet']['runs'][2]['command']}`" in table  # every missing run says how to make it
 
 
 @pytest.mark.parametrize("bad", [dict(policies=()), dict(episodes=0), dict(parcels=0), dict(ap_scenes=0),
                                  dict(backend="spark"), dict(objects=("spheres",)), dict(ablation_steps=(0,)),
+                                 dict(ablation_seeds=()), dict(ablation_seeds=(0, 0)), dict(ablation_seeds=(-1,)),
                                  dict(ap_qualities=("physical",)), dict(ap_qualities=("suctionnet", "bogus")),
                                  dict(ap_qualities=("suctionnet", "suctionnet")), dict(ap_qualities=())])
 def test_config_rejects_bad_values(bad, tmp_path):
@@ -219,21 +226,34 @@ def test_cli_end_to_end_on_one_stored_scene(one_scene: Path, tmp_path: Path, cap
 
 
 def test_ablations_evaluate_found_checkpoints_and_reuse_the_main_run(one_scene: Path, tmp_path: Path):
+    import torch
+
     from policies.diffusion.checkpoint import save_checkpoint
     from policies.diffusion.config import DiffusionConfig
     from policies.diffusion.model import build_model
 
     main_ckpt = save_checkpoint(tmp_path / "main.pt", build_model(DiffusionConfig.tiny(inference_steps=4)))
-    save_checkpoint(tmp_path / "abl" / "no_visibility" / "best.pt",
-                    build_model(DiffusionConfig.tiny(inference_steps=4, use_visibility=False)))
+    for seed in (0, 1):
+        torch.manual_seed(0)  # the same network under both seeds' names
+        save_checkpoint(tmp_path / "abl" / "no_visibility" / f"seed{seed}" / "best.pt",
+                        build_model(DiffusionConfig.tiny(inference_steps=4, use_visibility=False)))
+    (tmp_path / "abl" / "no_visibility" / "seed1" / "log.jsonl").write_text(
+        '{"step": 0, "val_ap_proxy": 0.1}\n{"step": 200, "loss": 0.5}\n{"step": 200, "val_ap_proxy": 0.25}\n')
     config = ReportConfig(test_data=str(one_scene), diffusion_checkpoint=str(main_ckpt),
-                          ablation_dir=str(tmp_path / "abl"), ablation_steps=(2, 4), progress=False)
+                          ablation_dir=str(tmp_path / "abl"), ablation_steps=(2, 4), ablation_seeds=(0, 1, 2),
+                          progress=False)
     main_ap = {"AP": 12.5}
     rows = {row["name"]: row for row in evaluate_ablations(config, main_ap=main_ap)}
     assert rows["infer4"]["ap"] is main_ap and "trained with 4" in rows["infer4"]["description"]
     assert rows["infer2"]["status"] == "ok" and rows["infer2"]["ap"]["num_scenes"] == 1
     assert 0.0 <= rows["infer2"]["ap"]["AP"] <= 100.0
-    assert rows["no_visibility"]["status"] == "ok" and rows["no_visibility"]["ap"]["num_scenes"] == 1
+    runs = rows["no_visibility"]["runs"]
+    assert rows["no_visibility"]["status"] == "2 of 3 seeds measured" and rows["no_visibility"]["ap"]["seeds"] == [0, 1]
+    assert [run["status"] for run in runs] == ["ok", "ok", "not trained"]
+    assert runs[0]["val_ap_proxy"] is None and runs[1]["val_ap_proxy"] == 0.25  # the best one the run logged
+    # the same untrained network twice: the seed mean is that network's AP, with no spread over seeds
+    assert rows["no_visibility"]["ap"]["AP"] == pytest.approx(runs[0]["ap"]["AP"])
+    assert rows["no_visibility"]["ap"]["seed_std"]["AP"] == pytest.approx(0.0)
     assert rows["no_normals"]["status"] == "not trained" and rows["no_normals"]["ap"] is None
 
 

@@ -51,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="eval/label_physics.py's JSON; its AUC is reported when the file exists")
     p.add_argument("--diffusion-checkpoint", default=None,
                    help="Diffusion-Suction weights (the shipped ones when omitted)")
-    p.add_argument("--ablation-dir", default=d.ablation_dir, help="trained ablations: <dir>/<name>/best.pt")
+    p.add_argument("--ablation-dir", default=d.ablation_dir, help="trained ablations: <dir>/<name>/seed<k>/best.pt")
+    p.add_argument("--ablation-seeds", nargs="+", type=int, default=list(d.ablation_seeds),
+                   help="training seeds of every ablation variant")
     p.add_argument("--ablation-steps", nargs="+", type=int, default=list(d.ablation_steps),
                    help="DDIM step counts tried on the main checkpoint")
     p.add_argument("--train-data", default=d.train_data, help="training data named in the ablation commands")
@@ -77,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                               skip_ablations=args.skip_ablations,
                               skip_paper_compat=args.skip_paper_compat, label_physics=args.label_physics,
                               diffusion_checkpoint=args.diffusion_checkpoint, ablation_dir=args.ablation_dir,
-                              ablation_steps=tuple(args.ablation_steps), train_data=args.train_data,
+                              ablation_steps=tuple(args.ablation_steps), ablation_seeds=tuple(args.ablation_seeds),
+                              train_data=args.train_data,
                               train_args=args.train_args, progress=not args.quiet,
                               graspnet_root=args.graspnet_root)
     except ValueError as exc:

@@ -8,7 +8,7 @@ from pathlib import Path
 from eval.ap import PAPER_COMPAT_NMS_RADIUS
 from eval.clearance import DEFAULT_EPISODES, LAYOUTS, OBJECT_SETS
 from eval.paper_results import METHOD_LABELS
-from eval.report.variants import ABLATION_TRAIN_ARGS
+from eval.report.variants import ABLATION_SEEDS, ABLATION_TRAIN_ARGS
 from parcelpick_env.parallel import BACKENDS
 from parcelpick_env.suction.quality import AP_DEFINITIONS
 
@@ -87,6 +87,7 @@ class ReportConfig:
     ablation_steps: tuple[int, ...] = (5, 10, 15, 20)  # inference-only step counts on the main checkpoint
     train_data: str = "data/train"  # only printed in the training commands of missing ablations
     train_args: str = ABLATION_TRAIN_ARGS  # the same settings for every variant, so each changes one thing only
+    ablation_seeds: tuple[int, ...] = ABLATION_SEEDS  # one training run of every variant per seed
     progress: bool = True
     graspnet_root: str | None = None  # SuctionNet-1Billion root: adds Table I (eval/table_one.py); None: no section
 
@@ -115,6 +116,9 @@ class ReportConfig:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
         if any(k < 1 for k in self.ablation_steps):
             raise ValueError(f"ablation_steps must be >= 1, got {self.ablation_steps}")
+        if (not self.ablation_seeds or any(s < 0 for s in self.ablation_seeds)
+                or len(set(self.ablation_seeds)) != len(self.ablation_seeds)):
+            raise ValueError(f"ablation_seeds must be distinct seeds >= 0, got {self.ablation_seeds}")
         for name, values, allowed in (("objects", self.objects, OBJECT_SETS), ("layouts", self.layouts, LAYOUTS)):
             if not values or any(v not in allowed for v in values):
                 raise ValueError(f"{name} must be a non-empty subset of {allowed}, got {values}")

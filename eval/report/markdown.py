@@ -18,6 +18,7 @@ from eval.report.config import (
     QUALITY_TITLES,
 )
 from eval.report.figures import plot_clearance, plot_failures, plot_precision_at_k
+from eval.report.seed_runs import MIN_SEEDS
 from eval.report.tables import (
     _unavailable,
     ablation_comparison_table,
@@ -136,12 +137,18 @@ def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out
     if cfg["skip_ablations"]:
         lines += ["Skipped (--skip-ablations).", ""]
     else:
-        lines += ["Inference-step rows reuse the main checkpoint; the other rows need their own training run "
-                  f"under `{cfg['ablation_dir']}/<name>/best.pt`, all with the same settings (`{cfg['train_args']}` "
-                  "plus the variant's flag), so read them against the 'reference' row, not the main checkpoint, "
-                  "which trained longer. The paper's DGCNN row has no counterpart here.", "",
+        seeds = ", ".join(str(k) for k in cfg.get("ablation_seeds", [0]))
+        lines += ["Inference-step rows reuse the main checkpoint; the other rows need their own training runs "
+                  f"under `{cfg['ablation_dir']}/<name>/seed<k>/best.pt`, one per seed ({seeds}), all with the same "
+                  f"settings (`{cfg['train_args']}` plus the seed and the variant's flag), so read them against the "
+                  "'reference' row, not the main checkpoint, which trained longer. A trained row is the mean over its "
+                  "seeds, with its 95% interval over test scenes and its std over seeds; the last column is the best "
+                  "validation top-k precision each run logged (the held-out part of the training data). The paper's "
+                  "DGCNN row has no counterpart here.", "",
                   ablation_table(report.get("ablations", [])), "",
-                  "Each trained variant against the reference, paired over the same test scenes:", "",
+                  "Each trained variant against the reference trained with the same seed, paired over the same test "
+                  "scenes; a variant is called ahead or behind only when the seed-mean difference's interval "
+                  f"excludes 0 and every seed's difference has its sign, over at least {MIN_SEEDS} seeds:", "",
                   ablation_comparison_table(report.get("ablations", [])), ""]
     if report.get("provenance"):
         lines += ["## Checkpoint provenance", "", provenance_table(report["provenance"]), ""]

@@ -27,6 +27,7 @@ from eval.report.config import (
     ReportConfig,
     label,
 )
+from eval.report.seed_runs import seed_mean_ap
 from eval.report.variants import TRAINED_VARIANTS, TrainedVariant
 
 
@@ -184,17 +185,49 @@ def evaluate_policy(name: str, config: ReportConfig) -> dict[str, Any]:
     return finish_entry(entry, config)
 
 
-def train_command(variant: TrainedVariant, config: ReportConfig) -> str:
+def ablation_run_dir(variant: TrainedVariant, seed: int, config: ReportConfig) -> Path:
+    return Path(config.ablation_dir) / variant.name / f"seed{seed}"
+
+
+def train_command(variant: TrainedVariant, config: ReportConfig, seed: int) -> str:
     return " ".join([".venv/bin/python -m policies.diffusion.train", "--data", config.train_data, "--out",
-                     str(Path(config.ablation_dir) / variant.name), *config.train_args.split(),
+                     str(ablation_run_dir(variant, seed, config)), *config.train_args.split(), "--seed", str(seed),
                      *variant.train_flags])
 
 
+def best_validation(run_dir: Path) -> float | None:
+    """The best validation top-k precision a training run logged (its best.pt's), or None without a log."""
+    log = run_dir / "log.jsonl"
+    if not log.is_file():
+        return None
+    values = [row["val_ap_proxy"] for row in map(json.loads, log.read_text().splitlines()) if "val_ap_proxy" in row]
+    return max(values) if values else None
+
+
+def _trained_runs(variant: TrainedVariant, config: ReportConfig) -> list[dict[str, Any]]:
+    """One entry per seed: its checkpoint, command, best validation figure and AP on the test scenes, if trained."""
+    runs = []
+    for seed in config.ablation_seeds:
+        run_dir = ablation_run_dir(variant, seed, config)
+        checkpoint = run_dir / "best.pt"
+        run = {"seed": seed, "checkpoint": str(checkpoint), "command": train_command(variant, config, seed),
+               "val_ap_proxy": best_validation(run_dir), "ap": None, "reason": None}
+        if not checkpoint.is_file():
+            run["status"] = "not trained"
+        else:
+            policy, why = load_policy(DIFFUSION, checkpoint=str(checkpoint))
+            run["ap"], error = _policy_ap(policy, why, f"ablation {variant.name} seed {seed}", config)
+            run.update(status="ok" if run["ap"] is not None else "failed", reason=error)
+        runs.append(run)
+    return runs
+
+
 def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = None) -> list[dict[str, Any]]:
-    """Inference-step counts on the main checkpoint (no retraining), then every trained variant found.
+    """Inference-step counts on the main checkpoint (no retraining), then every trained variant found, per seed.
 
     ``main_ap``: the main Diffusion-Suction AP already computed on the same scenes, reused for the row
-    whose step count is the trained one instead of running it twice.
+    whose step count is the trained one instead of running it twice. A trained variant's ``ap`` is the mean over
+    its measured seeds (``seed_runs.seed_mean_ap``); each seed's own result is under ``runs``.
     """
     rows: list[dict[str, Any]] = []
     base, why = load_policy(DIFFUSION, **_policy_kwargs(DIFFUSION, config))
@@ -219,21 +252,24 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
     # same network as the main one, so the step-count variants are the inference rows, not new runs.
     step_free = base is not None and base.config.map_loss_weight == 0
     for variant in TRAINED_VARIANTS:
-        checkpoint = Path(config.ablation_dir) / variant.name / "best.pt"
         row = {"name": variant.name, "kind": "trained", "description": variant.description,
-               "paper": list(variant.paper) if variant.paper else None, "checkpoint": str(checkpoint),
-               "command": train_command(variant, config), "ap": None, "reason": None}
+               "paper": list(variant.paper) if variant.paper else None, "ap": None, "reason": None, "runs": []}
         if variant.steps is not None and step_free and variant.steps in sampled:
             row.update(kind="same_as_inference", checkpoint=sampled[variant.steps]["checkpoint"], command=None,
                        ap=sampled[variant.steps]["ap"], status="ok",
                        reason=f"the main network sampled with {variant.steps} steps: its training never runs the "
                               f"sampler, as map_loss_weight = 0")
-        elif not checkpoint.is_file():
-            row["status"] = "not trained"
-        else:
-            policy, why_v = load_policy(DIFFUSION, checkpoint=str(checkpoint))
-            row["ap"], error = _policy_ap(policy, why_v, f"ablation {variant.name}", config)
-            row.update(status="ok" if row["ap"] is not None else "failed", reason=error)
+            rows.append(row)
+            continue
+        row["runs"] = runs = _trained_runs(variant, config)
+        measured = [run for run in runs if run["ap"] is not None]
+        if measured:
+            row["ap"] = seed_mean_ap([run["ap"] for run in measured], [run["seed"] for run in measured])
+        row["status"] = ("ok" if len(measured) == len(runs) else f"{len(measured)} of {len(runs)} seeds measured"
+                         if measured else "not trained" if all(r["status"] == "not trained" for r in runs)
+                         else "failed")
+        failed = [f"seed {r['seed']}: {r['reason']}" for r in runs if r["status"] == "failed"]
+        row["reason"] = "; ".join(failed) or None
         rows.append(row)
     return rows
 

@@ -7,6 +7,8 @@ import json
 from itertools import pairwise
 from typing import Any
 
+import numpy as np
+
 from eval.clearance import LAYOUTS, OBJECT_SETS, OUTCOMES, rate_pair
 from eval.paper_results import TABLE_II_TOP1, TABLE_II_TOP50, TABLE_V
 from eval.report.comparisons import paired_ap
@@ -20,6 +22,7 @@ from eval.report.config import (
     PAPER_COMPAT_VARIANTS,
     label,
 )
+from eval.report.seed_runs import seed_paired_difference, seed_verdict
 from eval.report.variants import REFERENCE
 from eval.stats import format_interval
 from policies.provenance import FIELDS as PROVENANCE_FIELDS
@@ -252,20 +255,35 @@ def outcome_table(policies: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _seed_cell(ap: dict[str, Any], key: str) -> str:
+    """A seed-mean figure with its interval over scenes and, for several seeds, its std over seeds."""
+    std = ap.get("seed_std", {}).get(key)
+    spread = f" ± {std:.2f} (std, {len(ap['seeds'])} seeds)" if std is not None and len(ap["seeds"]) > 1 else ""
+    return _ours(ap, key) + spread
+
+
 def ablation_table(rows: list[dict[str, Any]]) -> str:
-    head = ["variant", "status", "AP (ours / paper)", "AP0.8", "AP0.4", "Top-1 AP (ours)"]
+    """Table III / IV layout: each variant's AP (the mean over its seeds when trained) and best validation figure."""
+    head = ["variant", "status", "AP (ours / paper)", "AP0.8", "AP0.4", "Top-1 AP (ours)", "best val top-k precision"]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for row in rows:
         paper = row.get("paper") or (None, None, None)
         ap = row.get("ap")
+        runs = row.get("runs") or []
+        status = row["status"] + (f": {row['reason']}" if row.get("reason") else "")
+        missing = [run for run in runs if run["status"] == "not trained"]
+        if missing:
+            status += " — train with " + "; ".join(f"`{run['command']}`" for run in missing)
         if ap is None:
-            status = row["status"] + (f": {row['reason']}" if row.get("reason") else "")
-            if row["status"] == "not trained":
-                status += f" — train with `{row['command']}`"
             cells = [_pair(None, p) for p in paper[:3]] + ["–"]
+        elif "seeds" in ap:
+            cells = [f"{_seed_cell(ap, m)} / {_fmt(p)}" for m, p in zip(AP_METRICS, paper[:3])]
+            cells.append(_seed_cell(ap, "top1_AP"))
         else:
-            status = "ok" + (f" ({row['reason']})" if row.get("reason") else "")
             cells = [_ap_pair(ap, m, p) for m, p in zip(AP_METRICS, paper[:3])] + [_ours(ap, "top1_AP")]
+        val = [run["val_ap_proxy"] for run in runs if run.get("val_ap_proxy") is not None]
+        cells.append("–" if not val else f"{np.mean(val):.3f}" + (f" ± {np.std(val, ddof=1):.3f}" if len(val) > 1
+                                                                    else ""))
         lines.append(f"| {row['description']} | {status} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -290,20 +308,26 @@ def comparison_table(rows: list[dict[str, Any]], policies: dict[str, dict[str, A
 
 
 def ablation_comparison_table(rows: list[dict[str, Any]]) -> str:
-    """Each measured trained variant against the 'reference' variant, paired over the same test scenes."""
-    from eval.stats import verdict
-
+    """Each measured trained variant against the 'reference' trained with the same seeds, paired over the same
+    test scenes (``seed_runs.seed_paired_difference``); the verdict needs every seed to agree."""
     by_name = {row["name"]: row for row in rows}
-    reference = by_name.get(REFERENCE, {}).get("ap")
-    if reference is None:
+    reference = {run["seed"]: run["ap"] for run in by_name.get(REFERENCE, {}).get("runs", []) if run["ap"]}
+    if not reference:
         return "No 'reference' variant was measured, so no variant can be compared with it."
-    lines = ["| variant | Top-50 AP diff vs reference | verdict |", "|---|---|---|"]
+    lines = ["| variant | seeds | Top-50 AP diff vs reference: mean ± std over seeds | seed-mean diff [95% over "
+             "scenes] | per seed | verdict |", "|---|---|---|---|---|---|"]
     for row in rows:
-        if row["kind"] == "inference_steps" or row["name"] == REFERENCE or row.get("ap") is None:
+        if row["kind"] != "trained" or row["name"] == REFERENCE or row.get("ap") is None:
             continue
-        diff = paired_ap(row["ap"], reference, "AP")
-        cells = ["–", "–"] if diff is None else [format_interval(diff), verdict(diff, row["description"], REFERENCE)]
-        lines.append(f"| {row['description']} | " + " | ".join(cells) + " |")
+        diff = seed_paired_difference({run["seed"]: run["ap"] for run in row["runs"] if run["ap"]}, reference)
+        if diff is None:
+            lines.append(f"| {row['description']} | 0 | – | – | – | no seed shared with the reference |")
+            continue
+        per_seed = ", ".join(f"{seed}: {d['estimate']:+.2f}" for seed, d in diff["per_seed"].items())
+        spread = "" if diff["std"] is None else f" ± {diff['std']:.2f}"
+        lines.append(f"| {row['description']} | {len(diff['seeds'])} | {diff['mean']:+.2f}{spread} | "
+                     f"{format_interval(diff['pooled'])} | {per_seed} | "
+                     f"{seed_verdict(diff, row['description'], REFERENCE)} |")
     return "\n".join(lines)
 
 
