@@ -14,6 +14,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 LEVER_CHANNELS = 4  # offset to the segment centroid (x, y, z) and its horizontal length
+SIZE_CHANNELS = 1  # the segment's radius of gyration
+LEVER_UNIT = 0.1  # metres: lever arms and sizes enter the networks in decimetres, O(1) like the other features
 
 
 def segment_surfaces(points: np.ndarray, normals: np.ndarray, radius: float = 0.02, min_cos: float = 0.8
@@ -35,19 +37,38 @@ def segment_surfaces(points: np.ndarray, normals: np.ndarray, radius: float = 0.
     return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
-def segment_levers(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """(N, 4) float32: the offset from each point to its segment's centroid, then that offset's horizontal length."""
+def _offsets_to_centroids(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(N, 3) float64: from each point to the centroid of its segment."""
     points = np.asarray(points, dtype=np.float64)
     labels = np.asarray(labels, dtype=np.int64)
     if labels.shape != (len(points),):
         raise ValueError(f"need one label per point, got {labels.shape} for {len(points)} points")
     if len(points) == 0:
-        return np.zeros((0, LEVER_CHANNELS), dtype=np.float32)
+        return np.zeros((0, 3))
     k = int(labels.max()) + 1
     counts = np.bincount(labels, minlength=k)[:, None]
     centroids = np.stack([np.bincount(labels, points[:, d], minlength=k) for d in range(3)], axis=1) / counts
-    offsets = centroids[labels] - points
+    return centroids[labels] - points
+
+
+def segment_levers(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(N, 4) float32: the offset from each point to its segment's centroid, then that offset's horizontal length."""
+    offsets = _offsets_to_centroids(points, labels)
     return np.concatenate([offsets, np.linalg.norm(offsets[:, :2], axis=1, keepdims=True)], axis=1).astype(np.float32)
+
+
+def segment_sizes(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(N, 1) float32: the radius of gyration (RMS distance to the centroid) of each point's segment.
+
+    How large the face a point lies on is: a small face is a parcel's side or a fragment, whose centroid is a poor
+    stand-in for the centre of mass. In metres, independent of the point density.
+    """
+    squared = np.sum(_offsets_to_centroids(points, labels) ** 2, axis=1)
+    labels = np.asarray(labels, dtype=np.int64)
+    if len(labels) == 0:
+        return np.zeros((0, SIZE_CHANNELS), dtype=np.float32)
+    mean_squared = np.bincount(labels, squared) / np.bincount(labels)
+    return np.sqrt(mean_squared[labels])[:, None].astype(np.float32)
 
 
 def surface_levers(points: np.ndarray, normals: np.ndarray, radius: float = 0.02, min_cos: float = 0.8

@@ -16,13 +16,14 @@ from policies.base import Candidates
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, load_model, save_checkpoint
 from policies.diffusion.config import LEGACY_SAMPLER, TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
-from policies.diffusion.model import LEVER_UNIT, build_model
+from policies.diffusion.model import build_model
 from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods, grid_sample
 from policies.diffusion.pointnet2 import fold_batchnorm
 from policies.diffusion.policy import DiffusionSuctionPolicy
 from policies.diffusion.scheduler import DiffusionSchedule
 from policies.diffusion.synthetic import synthetic_scene
 from policies.postprocess import nms_indices, select_candidates
+from policies.surface_segments import LEVER_UNIT, segment_sizes
 
 N = 512
 
@@ -282,6 +283,45 @@ def test_segment_levers_condition_the_decoder_in_training_and_in_the_policy():
     assert torch.isfinite(model.train().forward_train(batch)["loss"])
     with pytest.raises(KeyError, match="surface_levers"):
         model.encode({k: v for k, v in batch.items() if k != "surface_levers"})
+    candidates = DiffusionSuctionPolicy(model=model, seed=0).predict(obs_from(), top_k=5)
+    assert len(candidates.points) == 5
+
+
+def test_segment_size_is_the_radius_of_gyration_of_each_points_face():
+    square = np.array([[1, 1, 0], [1, -1, 0], [-1, 1, 0], [-1, -1, 0], [5, 5, 1], [5, 5, 3]], dtype=float)
+    labels = np.array([0, 0, 0, 0, 1, 1])
+    sizes = segment_sizes(square, labels)
+    assert sizes.shape == (6, 1) and sizes.dtype == np.float32
+    assert np.allclose(sizes[:4], np.sqrt(2.0)) and np.allclose(sizes[4:], 1.0)
+    assert np.allclose(segment_sizes(square * 3.0, labels), 3.0 * sizes)  # metres, not point counts
+    assert segment_sizes(np.zeros((0, 3)), np.zeros(0, dtype=int)).shape == (0, 1)
+
+
+def test_segment_size_and_encoder_levers_reach_the_networks():
+    base = dict(inference_steps=2, prediction="x0", map_loss_weight=0.0, segment_levers=True)
+    sized = DiffusionConfig.tiny(**base, segment_size=True)
+    batch = make_batch(sized)
+    assert batch["surface_size"].shape == (1, N, 1) and float(batch["surface_size"].min()) >= 0.0
+    model = build_model(sized)
+    assert model.decoder.cond[0].in_channels == sized.feature_dim + 4 + 1
+    with torch.inference_mode():
+        feats = model.eval().encode(batch)
+    assert torch.allclose(feats[..., -1:], batch["surface_size"] / LEVER_UNIT)
+    both = DiffusionConfig.tiny(**base, segment_size=True, levers_in_encoder=True)
+    for encoder in ("pointnet2", "pointnet"):
+        cfg = DiffusionConfig.tiny(**{**base, "segment_size": True, "levers_in_encoder": True, "encoder": encoder})
+        model = build_model(cfg)
+        first = model.encoder.sa[0].first[0] if encoder == "pointnet2" else model.encoder.local[0]
+        assert first.in_features == 3 + 3 + 4 + 1  # xyz, normals, levers, size
+        assert torch.isfinite(model.train().forward_train(make_batch(cfg))["loss"])
+    # the encoder reads the levers: changing them changes its features (the decoder's copy left aside)
+    model = build_model(both).eval()
+    moved = {**batch, "surface_levers": batch["surface_levers"] + 0.05}
+    with torch.inference_mode():
+        a, b = model.encoder(batch), model.encoder(moved)
+    assert not torch.allclose(a, b)
+    with pytest.raises(KeyError, match="surface_size"):
+        model.encode({k: v for k, v in batch.items() if k != "surface_size"})
     candidates = DiffusionSuctionPolicy(model=model, seed=0).predict(obs_from(), top_k=5)
     assert len(candidates.points) == 5
 

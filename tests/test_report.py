@@ -154,8 +154,8 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     rows = evaluate_ablations(config)
     assert rows[0]["name"] == "infer5" and rows[0]["status"] == "not available" and rows[0]["ap"] is None
     trained = {row["name"]: row for row in rows[1:]}
-    assert set(trained) == {"reference", "no_segment_levers", "no_normals", "no_visibility", "pointnet",
-                            "physical_labels", "steps5", "steps10", "steps15"}
+    assert set(trained) == {"reference", "no_segment_levers", "segment_size", "levers_in_encoder", "no_normals",
+                            "no_visibility", "pointnet", "physical_labels", "steps5", "steps10", "steps15"}
     assert all(row["status"] == "not trained" and [run["seed"] for run in row["runs"]] == [0, 1, 2]
                for row in trained.values())
     assert trained["no_normals"]["runs"][1]["command"] == (

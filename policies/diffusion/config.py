@@ -57,6 +57,11 @@ class DiffusionConfig:
     # lies on (policies/surface_segments.py), a geometric stand-in for the parcel's centre of mass that the wrench
     # score depends on. Segments join points closer than segment_radius whose normals agree to segment_min_cos.
     segment_levers: bool = False
+    # Also not in the paper (issue 14's item 4): the segment's size (radius of gyration) beside the levers in the
+    # decoder's condition, and the lever arms (and size) as encoder input beside the normals, so the PointNet++
+    # sees them within each neighbourhood.
+    segment_size: bool = False
+    levers_in_encoder: bool = False
     segment_radius: float = 0.02
     segment_min_cos: float = 0.8
     # encoder: PointNet++ MSG, 4 SA + 4 FP
@@ -109,6 +114,11 @@ class DiffusionConfig:
             raise ValueError("every SA level needs the same number of radii, one ball_dilation per radius")
         if any(r <= 0 for level in self.sa_radii for r in level) or min(self.ball_dilation) < 1:
             raise ValueError("sa_radii must be > 0 (metres) and ball_dilation >= 1")
+
+    @property
+    def uses_segments(self) -> bool:
+        """Whether the inputs need the surface segmentation (``neighbourhood.model_inputs``)."""
+        return self.segment_levers or self.segment_size or self.levers_in_encoder
 
     @property
     def num_channels(self) -> int:

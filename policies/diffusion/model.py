@@ -11,9 +11,7 @@ from policies.diffusion.config import DiffusionConfig
 from policies.diffusion.pcdb import PCDB
 from policies.diffusion.pointnet2 import build_encoder
 from policies.diffusion.scheduler import DiffusionSchedule
-from policies.surface_segments import LEVER_CHANNELS
-
-LEVER_UNIT = 0.1  # metres: lever arms enter the decoder in decimetres, O(1) like the other features
+from policies.diffusion.segment_inputs import segment_channels, segment_features
 
 
 class DiffusionSuction(nn.Module):
@@ -21,7 +19,7 @@ class DiffusionSuction(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = build_encoder(config)
-        cond_dim = self.encoder.out_channels + (LEVER_CHANNELS if config.segment_levers else 0)
+        cond_dim = self.encoder.out_channels + segment_channels(config, "decoder")
         self.decoder = PCDB(cond_dim, config.num_channels, config.decoder_dim, config.head_hidden,
                             config.attention_ratio)
         self.scheduler = DiffusionSchedule.from_config(config)
@@ -36,14 +34,11 @@ class DiffusionSuction(nn.Module):
 
     # -- networks -------------------------------------------------------------------------------------------------
     def encode(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Per-point condition features (B, N, F); run once per scene. With ``segment_levers`` the last
-        ``LEVER_CHANNELS`` are the batch's ``surface_levers`` (see ``neighbourhood.model_inputs``)."""
+        """Per-point condition features (B, N, F); run once per scene. With ``segment_levers`` / ``segment_size``
+        the last channels are the batch's ``surface_levers`` / ``surface_size`` (``segment_inputs``)."""
         features = self.encoder(batch)
-        if not self.config.segment_levers:
-            return features
-        if "surface_levers" not in batch:
-            raise KeyError("this model conditions on 'surface_levers'; build inputs with neighbourhood.model_inputs")
-        return torch.cat([features, batch["surface_levers"].to(features.dtype) / LEVER_UNIT], dim=-1)
+        extra = segment_features(batch, self.config, "decoder", features.dtype)
+        return torch.cat([features, *extra], dim=-1) if extra else features
 
     def _denoise_loop(self, cond: torch.Tensor, steps: int, generator: torch.Generator | None,
                       trajectory: list[torch.Tensor] | None = None) -> torch.Tensor:

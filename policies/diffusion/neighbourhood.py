@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from parcelpick_env.farthest_points import farthest_point_indices
 from policies.diffusion.config import DiffusionConfig
-from policies.surface_segments import surface_levers
+from policies.surface_segments import segment_levers, segment_sizes, segment_surfaces
 
 
 def grid_sample(points: np.ndarray, count: int) -> np.ndarray:
@@ -116,13 +116,17 @@ def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers:
 
 def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfig, workers: int = 1
                  ) -> dict[str, np.ndarray]:
-    """Everything the model needs precomputed for one cloud: the neighbourhoods (PointNet++ encoder) and the
-    surface-segment lever arms (``config.segment_levers``)."""
+    """Everything the model needs precomputed for one cloud: the neighbourhoods (PointNet++ encoder), and the
+    surface segments' lever arms (``surface_levers``) and sizes (``surface_size``) where the config uses them."""
     out: dict[str, np.ndarray] = {}
     if config.encoder == "pointnet2":
         out.update(compute_neighbourhoods(points, config, workers))
-    if config.segment_levers:
-        out["surface_levers"] = surface_levers(points, normals, config.segment_radius, config.segment_min_cos)
+    if config.uses_segments:
+        labels = segment_surfaces(points, normals, config.segment_radius, config.segment_min_cos)
+        if config.segment_levers or config.levers_in_encoder:
+            out["surface_levers"] = segment_levers(points, labels)
+        if config.segment_size:
+            out["surface_size"] = segment_sizes(points, labels)
     return out
 
 

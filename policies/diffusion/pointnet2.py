@@ -12,6 +12,7 @@ import torch
 from torch import nn
 
 from policies.diffusion.config import DiffusionConfig
+from policies.diffusion.segment_inputs import segment_channels, segment_features
 
 
 def gather(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -87,6 +88,18 @@ def _w(c: int, width: float) -> int:
     return max(4, int(round(c * width)))
 
 
+def point_feature_channels(config: DiffusionConfig) -> int:
+    """Per-point input channels beside xyz: the normals, and the segment features under ``levers_in_encoder``."""
+    return (3 if config.use_normals else 0) + segment_channels(config, "encoder")
+
+
+def point_features(batch: Mapping[str, torch.Tensor], config: DiffusionConfig) -> torch.Tensor | None:
+    """(B, N, point_feature_channels) or None when there are none (xyz only)."""
+    parts = ([batch["normals"]] if config.use_normals else []) + segment_features(
+        batch, config, "encoder", batch["points"].dtype)
+    return torch.cat(parts, dim=-1) if parts else None
+
+
 class PointNet2Encoder(nn.Module):
     """The public code's Pointnet2MSGBackbone: SA 64/128/256/512 x 3 scales, FP back to ``feature_dim`` per point."""
 
@@ -94,8 +107,8 @@ class PointNet2Encoder(nn.Module):
         super().__init__()
         self.levels = len(config.sa_npoints)
         w = config.width
-        in_feat = 3 if config.use_normals else 0
-        self.use_normals = config.use_normals
+        in_feat = point_feature_channels(config)
+        self.config = config
         base = [(32, 32, 64), (64, 64, 128), (128, 128, 256), (256, 256, 512)]
         while len(base) < self.levels:
             base.append(tuple(2 * c for c in base[-1]))
@@ -122,7 +135,7 @@ class PointNet2Encoder(nn.Module):
 
     def forward(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
         xyz = batch["points"]
-        feats = batch["normals"] if self.use_normals else None
+        feats = point_features(batch, self.config)
         xyzs, featss = [xyz], [feats]
         for l, sa in enumerate(self.sa, start=1):
             xyz, feats = sa(xyz, feats, batch[f"sa{l}_centres"], batch[f"sa{l}_groups"])
@@ -140,8 +153,8 @@ class PointNetEncoder(nn.Module):
     def __init__(self, config: DiffusionConfig):
         super().__init__()
         w = config.width
-        self.use_normals = config.use_normals
-        c_in = 6 if config.use_normals else 3
+        self.config = config
+        c_in = 3 + point_feature_channels(config)
         self.local = SharedMLP([c_in, _w(64, w), _w(64, w)])
         self.glob = SharedMLP([_w(64, w), _w(128, w), _w(1024, w)])
         self.head = SharedMLP([_w(64, w) + _w(1024, w), _w(256, w), config.feature_dim])
@@ -150,8 +163,9 @@ class PointNetEncoder(nn.Module):
     def forward(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
         xyz = batch["points"]
         x = xyz - xyz.mean(dim=1, keepdim=True)
-        if self.use_normals:
-            x = torch.cat([x, batch["normals"]], dim=-1)
+        feats = point_features(batch, self.config)
+        if feats is not None:
+            x = torch.cat([x, feats], dim=-1)
         local = self.local(x)
         g = self.glob(local).amax(dim=1, keepdim=True).expand(-1, x.shape[1], -1)
         return self.head(torch.cat([local, g], dim=-1))

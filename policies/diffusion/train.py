@@ -77,6 +77,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--no-normals", action="store_true")
     p.add_argument("--no-visibility", action="store_true")
     p.add_argument("--no-segment-levers", action="store_true", help="do not condition on surface-segment lever arms")
+    p.add_argument("--segment-size", action="store_true",
+                   help="also condition the decoder on each point's surface-segment size (radius of gyration)")
+    p.add_argument("--levers-in-encoder", action="store_true",
+                   help="feed the segment lever arms (and size) to the encoder beside the normals")
     p.add_argument("--diffusion-steps", type=int, help="training diffusion steps T (default 1000)")
     p.add_argument("--inference-steps", type=int, help="DDIM steps (default: 20 in the paper preset, 5 in cpu)")
     p.add_argument("--schedule", choices=["linear", "cosine"])
@@ -114,6 +118,10 @@ def make_config(args: argparse.Namespace) -> DiffusionConfig:
         overrides["use_visibility"] = False
     if args.no_segment_levers:
         overrides["segment_levers"] = False
+    if args.segment_size:
+        overrides["segment_size"] = True
+    if args.levers_in_encoder:
+        overrides["levers_in_encoder"] = True
     if args.preset == "paper":
         return DiffusionConfig(**overrides)
     return PRESETS[args.preset](**overrides)
