@@ -238,7 +238,7 @@ def test_ablations_evaluate_found_checkpoints_and_reuse_the_main_run(one_scene: 
         save_checkpoint(tmp_path / "abl" / "no_visibility" / f"seed{seed}" / "best.pt",
                         build_model(DiffusionConfig.tiny(inference_steps=4, use_visibility=False)))
     (tmp_path / "abl" / "no_visibility" / "seed1" / "log.jsonl").write_text(
-        '{"step": 0, "val_ap_proxy": 0.1}\n{"step": 200, "loss": 0.5}\n{"step": 200, "val_ap_proxy": 0.25}\n')
+        '{"step": 0, "val_ap_proxy": 0.1}\n{"step": 200, "loss": 0.5}\n{"step": 200, "val_ap_proxy": 0.25}\n{"step": 40')
     config = ReportConfig(test_data=str(one_scene), diffusion_checkpoint=str(main_ckpt),
                           ablation_dir=str(tmp_path / "abl"), ablation_steps=(2, 4), ablation_seeds=(0, 1, 2),
                           progress=False)
@@ -250,7 +250,7 @@ def test_ablations_evaluate_found_checkpoints_and_reuse_the_main_run(one_scene: 
     runs = rows["no_visibility"]["runs"]
     assert rows["no_visibility"]["status"] == "2 of 3 seeds measured" and rows["no_visibility"]["ap"]["seeds"] == [0, 1]
     assert [run["status"] for run in runs] == ["ok", "ok", "not trained"]
-    assert runs[0]["val_ap_proxy"] is None and runs[1]["val_ap_proxy"] == 0.25  # the best one the run logged
+    assert runs[0]["val_ap_proxy"] is None and runs[1]["val_ap_proxy"] == 0.25  # the best logged; a cut line skipped
     # the same untrained network twice: the seed mean is that network's AP, with no spread over seeds
     assert rows["no_visibility"]["ap"]["AP"] == pytest.approx(runs[0]["ap"]["AP"])
     assert rows["no_visibility"]["ap"]["seed_std"]["AP"] == pytest.approx(0.0)

@@ -196,11 +196,19 @@ def train_command(variant: TrainedVariant, config: ReportConfig, seed: int) -> s
 
 
 def best_validation(run_dir: Path) -> float | None:
-    """The best validation top-k precision a training run logged (its best.pt's), or None without a log."""
+    """The best validation top-k precision a training run logged (its best.pt's), or None without a log; a line
+    cut short by a run still writing is skipped."""
     log = run_dir / "log.jsonl"
     if not log.is_file():
         return None
-    values = [row["val_ap_proxy"] for row in map(json.loads, log.read_text().splitlines()) if "val_ap_proxy" in row]
+    values = []
+    for line in log.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(row, dict) and isinstance(row.get("val_ap_proxy"), (int, float)):
+            values.append(float(row["val_ap_proxy"]))
     return max(values) if values else None
 
 
@@ -265,9 +273,12 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
         measured = [run for run in runs if run["ap"] is not None]
         if measured:
             row["ap"] = seed_mean_ap([run["ap"] for run in measured], [run["seed"] for run in measured])
-        row["status"] = ("ok" if len(measured) == len(runs) else f"{len(measured)} of {len(runs)} seeds measured"
-                         if measured else "not trained" if all(r["status"] == "not trained" for r in runs)
-                         else "failed")
+        if len(measured) == len(runs):
+            row["status"] = "ok"
+        elif measured:
+            row["status"] = f"{len(measured)} of {len(runs)} seeds measured"
+        else:
+            row["status"] = "not trained" if all(r["status"] == "not trained" for r in runs) else "failed"
         failed = [f"seed {r['seed']}: {r['reason']}" for r in runs if r["status"] == "failed"]
         row["reason"] = "; ".join(failed) or None
         rows.append(row)
