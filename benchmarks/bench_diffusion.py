@@ -23,7 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from policies.diffusion.config import DiffusionConfig  # noqa: E402
 from policies.diffusion.model import build_model  # noqa: E402
 from policies.diffusion.neighbourhood import NeighbourhoodTransform, model_inputs  # noqa: E402
-from policies.diffusion.policy import DiffusionSuctionPolicy  # noqa: E402
+from policies.diffusion.pointnet2 import fold_batchnorm  # noqa: E402
+from policies.diffusion.policy import PRECISIONS, DiffusionSuctionPolicy  # noqa: E402
 from policies.diffusion.synthetic import synthetic_scene  # noqa: E402
 
 
@@ -52,13 +53,16 @@ def scheduler_only(model, x: torch.Tensor) -> None:
         x, _ = model.scheduler.step(x, t, x, steps)
 
 
-def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decode_points: int) -> dict:
+def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decode_points: int,
+                    precision: str = "float32") -> dict:
     scene = synthetic_scene(np.random.default_rng(0), n)
     model = build_model(cfg).eval()
+    model.encoder = fold_batchnorm(model.encoder)  # as the policy runs it
     nb = {}
     t_nb = timed(lambda: nb.update(model_inputs(scene["points"], scene["normals"], cfg)), repeats)
     batch = {k: torch.from_numpy(np.asarray(v)).unsqueeze(0) for k, v in {**scene, **nb}.items()}
-    with torch.inference_mode():
+    low = precision != "float32"
+    with torch.inference_mode(), torch.autocast("cpu", dtype=PRECISIONS[precision], enabled=low):
         feats = model.encode(batch)
         t_enc = timed(lambda: model.encode(batch), repeats)
         t_dec = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0)), repeats)
@@ -67,11 +71,12 @@ def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decod
         x = torch.randn((1, cfg.num_channels, n), generator=torch.Generator().manual_seed(0))
         t_sched = timed(lambda: scheduler_only(model, x), repeats)
     obs = {"points": scene["points"], "normals": scene["normals"]}
-    full = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=0)
-    fast = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=decode_points)
+    full = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=0, precision=precision)
+    fast = DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=decode_points,
+                                  precision=precision)
     t_pol = timed(lambda: full.predict(obs), repeats)
     t_fast = timed(lambda: fast.predict(obs), repeats)
-    return {"config": name, "N": n, "precompute": t_nb, "encoder": t_enc,
+    return {"config": name, "precision": precision, "N": n, "precompute": t_nb, "encoder": t_enc,
             f"decoder x{cfg.inference_steps} (N)": t_dec, f"decoder x{cfg.inference_steps} ({decode_points} pts)": t_sub,
             "of which scheduler (N)": t_sched,
             "predict (decode N)": t_pol, f"predict (decode {decode_points})": t_fast, "peak RSS MB": peak_mb()}
@@ -144,6 +149,9 @@ def main() -> None:
         configs["paper (w=1.0)"] = lambda n: DiffusionConfig(**sized(n))
     rows = [bench_inference(name, make(n), n, args.repeats, args.decode_points)
             for name, make in configs.items() for n in args.sizes]
+    # bfloat16 autocast (policy precision='bfloat16') at the largest size: the paper preset's matmuls dominate
+    rows += [bench_inference(name, make(max(args.sizes)), max(args.sizes), args.repeats, args.decode_points,
+                             "bfloat16") for name, make in configs.items()]
     print(f"### Diffusion-Suction inference, B=1, {args.threads} torch threads, {'CPU' if args.cpu_time else 'wall'} times in ms (median of {args.repeats})\n")
     print(table(rows))
     deploy = [bench_deploy(DiffusionConfig.cpu(), n, args.repeats) for n in args.sizes]

@@ -256,6 +256,9 @@ def test_folded_batchnorm_encoder_matches(cfg):
         folded = fold_batchnorm(model.encoder)(batch)
     assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in fold_batchnorm(model.encoder).modules())
     assert torch.allclose(ref, folded, atol=1e-4), float((ref - folded).abs().max())
+    with torch.inference_mode():
+        twice = fold_batchnorm(fold_batchnorm(model.encoder))(batch)
+    assert torch.equal(twice, folded)  # idempotent: a policy built on a folded model folds nothing more
 
 
 def test_ablation_configs_build_and_run():
@@ -324,6 +327,18 @@ def test_segment_size_and_encoder_levers_reach_the_networks():
         model.encode({k: v for k, v in batch.items() if k != "surface_size"})
     candidates = DiffusionSuctionPolicy(model=model, seed=0).predict(obs_from(), top_k=5)
     assert len(candidates.points) == 5
+
+
+def test_bfloat16_inference_ranks_like_float32_and_returns_float32_scores():
+    cfg = DiffusionConfig.tiny(inference_steps=2, prediction="x0", map_loss_weight=0.0)
+    model = build_model(cfg)
+    exact = DiffusionSuctionPolicy(model=model, seed=0).predict(obs_from(), top_k=20)
+    low = DiffusionSuctionPolicy(model=model, seed=0, precision="bfloat16").predict(obs_from(), top_k=20)
+    assert low.scores.dtype == np.float32 and len(low.points) == 20
+    assert not np.array_equal(exact.scores, low.scores)  # the matmuls really ran in bfloat16
+    assert np.abs(np.sort(exact.scores) - np.sort(low.scores)).max() < 0.05
+    with pytest.raises(ValueError, match="precision must be one of"):
+        DiffusionSuctionPolicy(model=model, precision="float16")
 
 
 def test_config_validation():

@@ -182,11 +182,14 @@ def _bn_affine(bn: nn.BatchNorm1d) -> tuple[torch.Tensor, torch.Tensor]:
 
 @torch.no_grad()
 def fold_batchnorm(module: nn.Module) -> nn.Module:
-    """Inference copy with each eval-mode BatchNorm folded into the Linear before it (one memory pass less each)."""
+    """Inference copy with each eval-mode BatchNorm folded into the Linear before it (one memory pass less each).
+    Folding a folded module changes nothing."""
     module = copy.deepcopy(module).eval()
     for m in list(module.modules()):
         if isinstance(m, SetAbstractionMSG):
             for s, (first, rest) in enumerate(zip(m.first, m.rest)):
+                if not isinstance(rest[0], _ChannelLastBatchNorm):  # folded already
+                    continue
                 scale, shift = _bn_affine(rest[0])
                 fused = nn.Linear(first.in_features, first.out_features, bias=True)
                 fused.weight.copy_(first.weight * scale[:, None])

@@ -20,6 +20,9 @@ from policies.observation import point_cloud
 from policies.postprocess import NMS_RADIUS, select_candidates
 
 MIN_POINTS = 16  # below this a cloud cannot hold a suction candidate worth ranking: empty Candidates
+# Inference precisions: bfloat16 runs the networks' matmuls under torch.autocast (CPUs with AVX512-BF16 or AMX
+# do them at twice the float32 rate); float32 keeps the trained numerics exactly.
+PRECISIONS: dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
 @dataclass
@@ -40,11 +43,16 @@ class DiffusionSuctionPolicy(Policy):
 
     def __init__(self, checkpoint: str | os.PathLike | None = None, device: str = "cpu", seed: int = 0,
                  num_threads: int | None = None, inference_steps: int | None = None, decode_points: int | None = None,
-                 nms_radius: float = NMS_RADIUS, record_trajectory: bool = True, model: DiffusionSuction | None = None):
+                 nms_radius: float = NMS_RADIUS, record_trajectory: bool = True, model: DiffusionSuction | None = None,
+                 precision: str = "float32"):
         """Loads ``checkpoint`` (default: the shipped one); ``model`` instead uses an in-memory model (tests).
 
         ``decode_points`` > 0 denoises a uniform subset of that many points (faster; candidates need no more).
+        ``precision`` ('float32' | 'bfloat16') is the networks' arithmetic at inference (see ``PRECISIONS``).
         """
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+        self.precision = precision
         if num_threads is not None:
             torch.set_num_threads(int(num_threads))
         self.device = torch.device(device)
@@ -86,7 +94,8 @@ class DiffusionSuctionPolicy(Policy):
         subset = None
         if 0 < self.decode_points < len(points):
             subset = np.sort(grid_sample(points, self.decode_points))
-        with torch.inference_mode():
+        low = self.precision != "float32"
+        with torch.inference_mode(), torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=low):
             features = self.model.encode(tensors)
             index = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
             out = self.model.sample(features, self.inference_steps, self._generator,
@@ -94,8 +103,8 @@ class DiffusionSuctionPolicy(Policy):
         scores, trajectory = out if self.record_trajectory else (out, None)
         if subset is not None:
             points, normals = points[subset], normals[subset]
-        channel_scores = scores[0].cpu().numpy()
+        channel_scores = scores[0].float().cpu().numpy()
         if trajectory is not None:
-            self.last_trajectory = Trajectory(points=points, maps=trajectory[:, 0].cpu().numpy())
+            self.last_trajectory = Trajectory(points=points, maps=trajectory[:, 0].float().cpu().numpy())
         quality = channel_scores.prod(axis=1)  # product of seal, wrench, collision (, visibility)
         return select_candidates(points, normals, quality, top_k=top_k, nms_radius=self.nms_radius)
