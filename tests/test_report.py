@@ -257,6 +257,26 @@ def test_ablations_evaluate_found_checkpoints_and_reuse_the_main_run(one_scene: 
     assert rows["no_normals"]["status"] == "not trained" and rows["no_normals"]["ap"] is None
 
 
+def test_a_runs_ap_is_kept_beside_its_checkpoint_and_reused_only_for_the_same_weights_and_scenes(
+        one_scene: Path, tmp_path: Path):
+    from policies.diffusion.checkpoint import save_checkpoint
+    from policies.diffusion.config import DiffusionConfig
+    from policies.diffusion.model import build_model
+
+    checkpoint = save_checkpoint(tmp_path / "run" / "best.pt", build_model(DiffusionConfig.tiny(inference_steps=2)))
+    config = ReportConfig(test_data=str(one_scene), progress=False)
+    ap, error = orchestration.run_ap((str(checkpoint), config))
+    cache = json.loads((tmp_path / "run" / "ap.json").read_text())
+    assert error is None and cache["ap"] == ap and cache["key"]["ap_scenes"] is None
+    cache["ap"] = {"AP": -1.0}  # a stand-in result under the same key is what comes back: nothing re-ran
+    (tmp_path / "run" / "ap.json").write_text(json.dumps(cache))
+    assert orchestration.run_ap((str(checkpoint), config))[0] == {"AP": -1.0}
+    save_checkpoint(checkpoint, build_model(DiffusionConfig.tiny(inference_steps=2), seed=1))  # new weights
+    assert orchestration.run_ap((str(checkpoint), config))[0]["num_scenes"] == 1
+    (tmp_path / "run" / "ap.json").write_text("{cut short")
+    assert orchestration.run_ap((str(checkpoint), config))[0]["num_scenes"] == 1  # a corrupt cache is redone
+
+
 def test_step_count_variants_are_the_inference_rows_when_training_never_samples(tmp_path: Path):
     """With map_loss_weight = 0 a model 'trained with k steps' is the main model: no run to ask for."""
     from policies.diffusion.checkpoint import save_checkpoint

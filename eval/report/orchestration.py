@@ -28,6 +28,7 @@ from eval.report.config import (
     label,
 )
 from eval.report.seed_runs import seed_mean_ap
+from parcelpick_env.parallel import parallel_map
 from eval.report.variants import TRAINED_VARIANTS, TrainedVariant
 
 
@@ -212,21 +213,54 @@ def best_validation(run_dir: Path) -> float | None:
     return max(values) if values else None
 
 
+def _file_sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _run_ap_key(checkpoint: Path, config: ReportConfig) -> dict[str, Any]:
+    """What one run's AP depends on: its weights, the test scenes and how many of them are scored."""
+    from policies.provenance import manifest_sha256
+
+    return {"checkpoint_sha256": _file_sha256(checkpoint), "test_data_manifest_sha256": manifest_sha256(config.test_data),
+            "ap_scenes": config.ap_scenes, "quality": HEADLINE_QUALITY}
+
+
+def run_ap(job: tuple[str, ReportConfig]) -> tuple[dict[str, Any] | None, str | None]:
+    """(AP, None) or (None, why) of one trained ablation run; kept beside its checkpoint (``ap.json``) and reused
+    while the weights, the test scenes and the scene count are the same. A pool worker's job: picklable."""
+    checkpoint, config = Path(job[0]), job[1]
+    cache = checkpoint.with_name("ap.json")
+    key = _run_ap_key(checkpoint, config)
+    if cache.is_file():
+        try:
+            stored = json.loads(cache.read_text())
+        except ValueError:
+            stored = None
+        if isinstance(stored, dict) and stored.get("key") == key:
+            return stored["ap"], None
+    policy, why = load_policy(DIFFUSION, checkpoint=str(checkpoint))
+    ap, error = _policy_ap(policy, why, f"ablation {checkpoint.parent}", config)
+    if ap is not None:
+        text = json.dumps({"key": key, "ap": ap})
+        ap = json.loads(text)["ap"]  # as a later read of the cache gives it (lists, not tuples)
+        partial = cache.with_suffix(".json.partial")
+        partial.write_text(text)
+        partial.replace(cache)  # never a half-written cache
+    return ap, error
+
+
 def _trained_runs(variant: TrainedVariant, config: ReportConfig) -> list[dict[str, Any]]:
-    """One entry per seed: its checkpoint, command, best validation figure and AP on the test scenes, if trained."""
+    """One entry per seed: its checkpoint, command and best validation figure; ``status`` 'not trained' without a
+    checkpoint, else 'pending' until ``evaluate_ablations`` fills in its AP."""
     runs = []
     for seed in config.ablation_seeds:
         run_dir = ablation_run_dir(variant, seed, config)
         checkpoint = run_dir / "best.pt"
-        run = {"seed": seed, "checkpoint": str(checkpoint), "command": train_command(variant, config, seed),
-               "val_ap_proxy": best_validation(run_dir), "ap": None, "reason": None}
-        if not checkpoint.is_file():
-            run["status"] = "not trained"
-        else:
-            policy, why = load_policy(DIFFUSION, checkpoint=str(checkpoint))
-            run["ap"], error = _policy_ap(policy, why, f"ablation {variant.name} seed {seed}", config)
-            run.update(status="ok" if run["ap"] is not None else "failed", reason=error)
-        runs.append(run)
+        runs.append({"seed": seed, "checkpoint": str(checkpoint), "command": train_command(variant, config, seed),
+                     "val_ap_proxy": best_validation(run_dir), "ap": None, "reason": None,
+                     "status": "pending" if checkpoint.is_file() else "not trained"})
     return runs
 
 
@@ -269,7 +303,18 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
                               f"sampler, as map_loss_weight = 0")
             rows.append(row)
             continue
-        row["runs"] = runs = _trained_runs(variant, config)
+        row["runs"] = _trained_runs(variant, config)
+        rows.append(row)
+    pending = [run for row in rows for run in row.get("runs", []) if run["status"] == "pending"]
+    results = parallel_map(run_ap, [(run["checkpoint"], config) for run in pending], workers=config.workers,
+                           backend=config.backend, ray_address=config.ray_address, desc="ablation AP",
+                           progress=config.progress)
+    for run, (ap, error) in zip(pending, results):
+        run.update(ap=ap, status="ok" if ap is not None else "failed", reason=error)
+    for row in rows:
+        if row["kind"] != "trained":
+            continue
+        runs = row["runs"]
         measured = [run for run in runs if run["ap"] is not None]
         if measured:
             row["ap"] = seed_mean_ap([run["ap"] for run in measured], [run["seed"] for run in measured])
@@ -281,7 +326,6 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
             row["status"] = "not trained" if all(r["status"] == "not trained" for r in runs) else "failed"
         failed = [f"seed {r['seed']}: {r['reason']}" for r in runs if r["status"] == "failed"]
         row["reason"] = "; ".join(failed) or None
-        rows.append(row)
     return rows
 
 
