@@ -62,9 +62,14 @@ def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decod
     t_nb = timed(lambda: nb.update(model_inputs(scene["points"], scene["normals"], cfg)), repeats)
     batch = {k: torch.from_numpy(np.asarray(v)).unsqueeze(0) for k, v in {**scene, **nb}.items()}
     low = precision != "float32"
-    with torch.inference_mode(), torch.autocast("cpu", dtype=PRECISIONS[precision], enabled=low):
-        feats = model.encode(batch)
-        t_enc = timed(lambda: model.encode(batch), repeats)
+
+    def encode() -> torch.Tensor:  # as the policy runs it: the encoder at ``precision``, the decoder in float32
+        with torch.autocast("cpu", dtype=PRECISIONS[precision], enabled=low):
+            return model.encode(batch).float()
+
+    with torch.inference_mode():
+        feats = encode()
+        t_enc = timed(encode, repeats)
         t_dec = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0)), repeats)
         sub = torch.arange(0, n, max(1, n // decode_points))[:decode_points].unsqueeze(0)
         t_sub = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0), point_index=sub), repeats)
