@@ -38,19 +38,19 @@ def seed_mean_ap(results: list[dict[str, Any]], seeds: list[int]) -> dict[str, A
     """
     if not results or len(results) != len(seeds):
         raise ValueError(f"need one AP result per seed, got {len(results)} for seeds {seeds}")
-    out: dict[str, Any] = {"seeds": list(seeds), "intervals": {}, "per_scene": {}, "seed_std": {}}
-    for metric in SEED_METRICS:
-        per_seed = [_per_scene(r, metric) for r in results]
-        common = sorted(set.intersection(*(set(p) for p in per_seed)))
-        if not common:
-            raise ValueError("the seeds' AP results share no test scene")
-        table = np.array([[p[i] for i in common] for p in per_seed])  # (seeds, scenes)
+    per_seed = {metric: [_per_scene(r, metric) for r in results] for metric in SEED_METRICS}
+    common = sorted(set.intersection(*(set(p) for p in per_seed["AP"])))
+    if not common:
+        raise ValueError("the seeds' AP results share no test scene")
+    out: dict[str, Any] = {"seeds": list(seeds), "scenes": [{"index": i} for i in common], "num_scenes": len(common),
+                           "intervals": {}, "per_scene": {}, "seed_std": {}}
+    for metric, values in per_seed.items():
+        table = np.array([[p[i] for i in common] for p in values])  # (seeds, scenes)
         scene_means = table.mean(axis=0)
         out[metric] = float(scene_means.mean())
         out["intervals"][metric] = bootstrap_mean(scene_means).to_dict()
         out["per_scene"][metric] = scene_means.tolist()
         out["seed_std"][metric] = float(table.mean(axis=1).std(ddof=1)) if len(results) > 1 else None
-        out["scenes"], out["num_scenes"] = [{"index": i} for i in common], len(common)
     return out
 
 
