@@ -137,8 +137,7 @@ def _candidates(env) -> np.ndarray:
     frame = u.frame
     lo, hi = u.action_space.low[:3], u.action_space.high[:3]
     inside = np.all((frame.points >= lo) & (frame.points <= hi), axis=1)
-    unit = np.abs(np.linalg.norm(frame.normals, axis=1) - 1.0) < 1e-3
-    return np.flatnonzero((frame.point_object_ids >= 0) & inside & unit)
+    return np.flatnonzero((frame.point_object_ids >= 0) & inside)
 
 
 def load_from_above(env, body: int) -> float:
@@ -161,9 +160,12 @@ def label_pick(env, rng: np.random.Generator) -> dict[str, Any] | None:
     pool = _candidates(env)
     if len(pool) == 0:
         return None
-    frame = env.unwrapped.frame
+    frame = env.unwrapped.frame  # captured without normals: the camera estimates the drawn point's (normals_at)
     k = int(pool[rng.integers(len(pool))])
-    point, normal = frame.points[k:k + 1].astype(np.float64), frame.normals[k:k + 1].astype(np.float64)
+    point = frame.points[k:k + 1].astype(np.float64)
+    normal = env.unwrapped.camera.normals_at(frame, np.array([k])).astype(np.float64)
+    if abs(float(np.linalg.norm(normal)) - 1.0) > 1e-3:  # a degenerate neighbourhood has no normal
+        return None
     object_id = frame.point_object_ids[k:k + 1].astype(np.int64)
     scene = _true_scene(env)
     cell = PhysicalCell(suction=env.unwrapped.config.suction, cup=env.unwrapped.config.grasp.cup,

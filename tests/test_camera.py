@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -207,5 +209,9 @@ def test_normals_at_a_few_points_match_the_full_estimate(box_world, normal_metho
     tilt = np.degrees(np.arccos(np.clip(full.normals[idx, 2], -1, 1)))
     assert tilt.max() > 5  # depth noise tilts the normals: the comparison below is not of constants
     np.testing.assert_allclose(cam.normals_at(bare, idx), full.normals[idx], atol=1e-5)
+    # without the kept float64 cloud the frame's depth is back-projected again, to the same cloud
+    assert bare.points64 is not None and bare.points64.dtype == np.float64
+    np.testing.assert_array_equal(cam.normals_at(dataclasses.replace(bare, points64=None), idx),
+                                  cam.normals_at(bare, idx))
     with pytest.raises(ValueError, match="captures"):
         _camera().normals_at(Camera(CameraConfig(width=80, height=60)).capture(sim, scene, normals=False), idx)

@@ -12,7 +12,8 @@ from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.envs.config import OBS_MODES, EnvConfig
 from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
-from parcelpick_env.envs.observation import NOT_IN_LIBRARY, asset_from_index, bin_from_vector, bin_vector
+from parcelpick_env.envs.observation import (NOT_IN_LIBRARY, asset_from_index, bin_from_vector, bin_vector,
+                                             sample_cloud)
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 from parcelpick_env.scene.config import MAX_PARCELS
 from parcelpick_env.scene.scene import BinSpec
@@ -129,5 +130,28 @@ def test_env_checkers_pass_for_each_mode(mode):
     try:
         gym_check(env, skip_render_check=False)
         sb3_check(env, warn=False)
+    finally:
+        env.close()
+
+
+def test_observed_normals_are_the_full_cloud_estimate_at_the_sampled_points():
+    """The env captures without normals and estimates them at the sampled points only: the observation must
+    equal what sampling a capture with every normal estimated (Open3D's, the camera default) gives."""
+    env = make(camera=CameraConfig(width=160, height=120, depth_noise_std=0.002))
+    try:
+        obs, _ = env.reset(seed=3)
+        assert env.frame is not None and env.frame.normals.shape == (0, 3)  # nothing estimated beyond the samples
+        np.testing.assert_allclose(np.linalg.norm(obs["normals"], axis=1), 1.0, atol=1e-4)
+        full = env.camera.capture(env.sim, env.scene, np.random.default_rng(0))
+        bare = env.camera.capture(env.sim, env.scene, np.random.default_rng(0), normals=False)
+        assert np.array_equal(bare.points, full.points) and len(full.normals) == len(full.points)
+        points, normals = sample_cloud(full, env.scene.bin, 256, np.random.default_rng(5))
+        points_bare, normals_bare = sample_cloud(bare, env.scene.bin, 256, np.random.default_rng(5),
+                                                 env.camera.normals_at)
+        np.testing.assert_array_equal(points_bare, points)
+        np.testing.assert_allclose(normals_bare, normals, atol=1e-5)
+        assert np.degrees(np.arccos(np.clip(normals[:, 2], -1, 1))).max() > 5  # noisy: not all +z
+        with pytest.raises(ValueError, match="without normals"):
+            sample_cloud(bare, env.scene.bin, 256, np.random.default_rng(5))
     finally:
         env.close()

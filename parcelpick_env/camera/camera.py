@@ -136,22 +136,22 @@ class Camera:
             intrinsics=self.intrinsics.copy(), extrinsics=self.extrinsics.copy(),
             points=points.astype(np.float32), normals=cloud_normals.astype(np.float32),
             point_object_ids=segmentation[rows, cols].astype(np.int32),
-            point_pixels=np.stack([rows, cols], axis=1).astype(np.int32),
+            point_pixels=np.stack([rows, cols], axis=1).astype(np.int32), points64=points,
         )
 
     def normals_at(self, frame: CameraFrame, indices: np.ndarray) -> np.ndarray:
         """(M, 3) float32: the normals ``capture`` gives ``frame.points[indices]``, estimated only there.
 
-        ``frame`` must come from this camera's ``capture``: its float64 cloud is rebuilt from the stored
-        depth and pixels (bit for bit what ``capture`` estimated on), so the normals agree with
-        ``capture``'s to rounding. The organised estimator filters the whole image either way (it is cheap).
+        ``frame`` must come from this camera's ``capture``: its float64 cloud (``frame.points64``, or rebuilt
+        from the stored depth and pixels, bit for bit) is what ``capture`` estimates on, so the normals agree
+        with ``capture``'s to rounding. The organised estimator filters the whole image either way (it is cheap).
         """
         if frame.depth.shape != (self.config.height, self.config.width):
             raise ValueError(f"frame is {frame.width}x{frame.height}, this camera captures "
                              f"{self.config.width}x{self.config.height}")
         indices = np.asarray(indices, dtype=np.int64).reshape(-1)
         rows, cols = frame.point_pixels[:, 0], frame.point_pixels[:, 1]
-        points = self._back_project(frame.depth, rows, cols)
+        points = frame.points64 if frame.points64 is not None else self._back_project(frame.depth, rows, cols)
         return self._normals(points, frame.depth, rows, cols, indices).astype(np.float32)
 
     def _back_project(self, depth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

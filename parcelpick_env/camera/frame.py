@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,6 +30,9 @@ class CameraFrame:
     normals: np.ndarray  # (P, 3) float32, unit, outward
     point_object_ids: np.ndarray  # (P,) int32
     point_pixels: np.ndarray  # (P, 2) int32, (row, col)
+    # the float64 cloud ``points`` was rounded from, kept by ``Camera.capture`` so that ``Camera.normals_at``
+    # estimates on exactly what ``capture`` would have without back-projecting the image again
+    points64: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def height(self) -> int:

@@ -599,7 +599,10 @@ class PickExecutor:
                 return self._report(move, "unreachable", Failure(move, hit.link, body=hit.body), t_start=t0)
         if move == "lift":
             pick.lift = traj
-        with self.sim.physics_overrides(timestep=g.carry_dt, solver_iterations=g.carry_solver_iterations):
+        # In transport the parcel is clear of the pile, which sleeps (Simulator.asleep) until something strikes it
+        resting = [ps.body_id for ps in scene.parcels if ps.body_id != pick.held.body_id] if move == "transport" else []
+        with self.sim.physics_overrides(timestep=g.carry_dt, solver_iterations=g.carry_solver_iterations), \
+                self.sim.asleep(resting):
             res = self._execute(traj, on_step=self._carry_step(pick, move, exempt))
         if res.collision is not None:
             return self._report(move, "collision", Failure(move, res.link, body=res.collision.body), res.steps, t0)

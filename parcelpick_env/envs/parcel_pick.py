@@ -28,10 +28,10 @@ callable ``(sim, seed) -> Scene`` used instead of ``build_pile``, e.g. ``custom_
 Replays: with ``record_dir`` set, each episode is written to ``record_dir/episode_<k>_seed<s>.rrd``
 (``self.replay_path``; ``self.recorder`` is the live ``EpisodeRecorder``).
 
-Speed: after every reset or attempt the settled parcels are put to sleep (Bullet's own
-deactivation), so moves that do not touch the pile cost little; contact wakes the touched island.
-Free-space moves are collision-checked kinematically; the approach runs at the simulator's step and
-lift/transport at ``GraspConfig.carry_dt`` with fewer solver iterations (see ``grasp.py``).
+Speed: free-space moves are collision-checked kinematically; the approach runs at the simulator's step
+and lift/transport at ``GraspConfig.carry_dt`` with fewer solver iterations, the resting pile asleep
+during transport (``Simulator.asleep``; see ``grasp.py``). The observed normals are estimated at the
+sampled points only (``Camera.normals_at``).
 """
 
 from __future__ import annotations
@@ -43,7 +43,6 @@ from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 import gymnasium as gym
 import numpy as np
-import pybullet as p
 from gymnasium import spaces
 
 from parcelpick_env.camera.camera import Camera
@@ -151,17 +150,11 @@ class ParcelPickEnv(gym.Env):
                           split=cfg.split, bin=self._bin)
         return build_pile(self.sim, pile, seed, self._library)
 
-    def _sleep_parcels(self) -> None:
-        """Bullet's deactivation for the resting pile: contact wakes it again."""
-        c = self.sim.client
-        for ps in _after_reset(self.scene, "scene").parcels:
-            p.changeDynamics(ps.body_id, -1, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING, physicsClientId=c)
-            p.changeDynamics(ps.body_id, -1, activationState=p.ACTIVATION_STATE_SLEEP, physicsClientId=c)
-
     def _observe(self) -> dict[str, np.ndarray]:
         scene = _after_reset(self.scene, "scene")
-        self.frame = self.camera.capture(self.sim, scene, self.np_random)
-        return self._observation.build(self.frame, scene, self.sim, self._bin, self.np_random)
+        # normals only where they are observed (sample_cloud) or picked (_pixel_to_pose): Camera.normals_at
+        self.frame = self.camera.capture(self.sim, scene, self.np_random, normals=False)
+        return self._observation.build(self.frame, scene, self.sim, self._bin, self.np_random, self.camera.normals_at)
 
     def _info(self, **extra: Any) -> dict[str, Any]:
         s = self._stats
@@ -224,7 +217,7 @@ class ParcelPickEnv(gym.Env):
         k = lookup[row, col]
         if k < 0:
             return None, None, f"no depth at pixel ({row}, {col})"
-        normal = frame.normals[k].astype(np.float64)
+        normal = self.camera.normals_at(frame, np.array([k]))[0].astype(np.float64)
         norm = float(np.linalg.norm(normal))
         if not np.isfinite(norm) or norm < 1e-6:
             return None, None, "no normal at pixel"
@@ -289,7 +282,6 @@ class ParcelPickEnv(gym.Env):
         if self._ready_q is not None:
             self.executor.set_ready_seed(self._ready_q)
         self._settle_against_arm()
-        self._sleep_parcels()
         self._episode += 1
         placed = len(self.scene.parcels)
         self._stats = {"attempts": 0, "successes": 0, "placed": placed, "cleared": 0, "lost": 0,
@@ -323,12 +315,13 @@ class ParcelPickEnv(gym.Env):
             result = _after_reset(self.executor, "pick executor").attempt(self.scene, point, normal)
             if result.dynamic_steps > 0:
                 bodies = [ps.body_id for ps in self.scene.parcels if self.sim.has_body(ps.body_id)]
-                if bodies:  # the rest of the pile comes to rest (cheaper solver, as the pile builder does)
-                    with self.sim.physics_overrides(solver_iterations=self.config.grasp.carry_solver_iterations):
+                if bodies:  # what the attempt disturbed comes to rest (cheaper solver, as the pile builder does);
+                    # what it left still sleeps meanwhile, until something strikes it (Simulator.asleep)
+                    with self.sim.physics_overrides(solver_iterations=self.config.grasp.carry_solver_iterations), \
+                            self.sim.asleep(bodies):
                         self.sim.settle(bodies, max_steps=self.config.grasp.max_post_settle_steps)
             lost = self._drop_departed()
             s["lost"] += lost
-            self._sleep_parcels()
         reward = 0.0
         if result.outcome == "success":
             s["successes"] += 1

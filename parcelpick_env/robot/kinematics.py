@@ -62,19 +62,28 @@ class Gen3Kinematics:
         self._last_R = R
         return tip, -R[:, 2], axes, origins
 
-    def tips(self, qs: np.ndarray) -> np.ndarray:
-        """Tool-tip positions (K, 3) of K configurations at once (batched ``forward``)."""
+    def _chain(self, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``forward`` of K configurations (K, 7) at once: tips (K, 3), bracelet frames (K, 3, 3), joint axes
+        and origins (K, 7, 3), world."""
         qs = np.asarray(qs, dtype=np.float64).reshape(-1, ARM_DOF)
-        R = np.broadcast_to(self.base_R, (len(qs), 3, 3))
-        t = np.broadcast_to(self.base_p, (len(qs), 3))
+        k = len(qs)
+        R = np.broadcast_to(self.base_R, (k, 3, 3))
+        t = np.broadcast_to(self.base_p, (k, 3))
         c, s = np.cos(qs), np.sin(qs)
+        axes, origins = np.empty((k, ARM_DOF, 3)), np.empty((k, ARM_DOF, 3))
+        rz = np.zeros((k, 3, 3))
+        rz[:, 2, 2] = 1.0
         for i in range(ARM_DOF):
             t = t + R @ self.offsets[i]
             R = R @ self.rolls[i]
-            rz = np.zeros((len(qs), 3, 3))
-            rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c[:, i], -s[:, i], s[:, i], c[:, i], 1.0
+            axes[:, i], origins[:, i] = R[:, :, 2], t
+            rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1] = c[:, i], -s[:, i], s[:, i], c[:, i]
             R = R @ rz
-        return t + R @ (self.ee + self.tip)
+        return t + R @ (self.ee + self.tip), R, axes, origins
+
+    def tips(self, qs: np.ndarray) -> np.ndarray:
+        """Tool-tip positions (K, 3) of K configurations at once (batched ``forward``)."""
+        return self._chain(qs)[0]
 
     def tool_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tool-tip position and rotation matrix (columns: tool x, y, z = approach axis), world."""
@@ -144,10 +153,10 @@ class Gen3Kinematics:
         difference of J along the motion (``J(q + h qd) - J(q - h qd)) / 2h``, exact to O(h^2)).
         """
         q, qd, qdd = (np.asarray(x, dtype=np.float64) for x in (q, qd, qdd))
-        _, _, Jm = self.jacobian(q - JDOT_STEP * qd)
-        _, _, Jp = self.jacobian(q + JDOT_STEP * qd)
-        position, R = self.tool_pose(q)
-        _, _, J = self.jacobian(q)
-        twist = J @ qd
-        accel = J @ qdd + (Jp - Jm) @ qd / (2.0 * JDOT_STEP)
-        return position, R, twist[:3], twist[3:], accel[:3], accel[3:]
+        # the three configurations in one batched chain (a quarter of the cost of four ``forward`` calls)
+        tips, R, axes, origins = self._chain(np.stack([q - JDOT_STEP * qd, q + JDOT_STEP * qd, q]))
+        J = np.concatenate([cross_rows(axes, tips[:, None, :] - origins), axes], axis=2).transpose(0, 2, 1)
+        twist = J[2] @ qd
+        accel = J[2] @ qdd + (J[1] - J[0]) @ qd / (2.0 * JDOT_STEP)
+        self._last_R = R[2]
+        return tips[2], R[2] @ _FLIP, twist[:3], twist[3:], accel[:3], accel[3:]

@@ -23,6 +23,13 @@ class SimConfig:
     settle_checks: int = 2
     collision_margin: float = 0.001  # m, kept small so parcels rest on their true surface
     max_hull_vertices: int = 64  # collision hulls are reduced to this many vertices for speed
+    # Simulator.asleep: bodies slower than these may sleep (5x the rest tolerances: the jitter of the carry's
+    # 60 Hz step, measured at up to 0.017 m/s and 0.22 rad/s in a resting pile; sleep zeroes the velocity)
+    sleep_linear_velocity: float = 0.05  # m/s
+    sleep_angular_velocity: float = 0.5  # rad/s
+    # Bullet's motion measure (v^2 + w^2, SI units) below which a sleeper woken by a contact falls asleep
+    # again after 2 s: 1 mm/s, still by any measure of the cell's
+    sleep_motion: float = 1e-6
     # Load pybullet's EGL renderer plugin (OpenGL rendering for the camera) when the client starts:
     # shapes created before the plugin is loaded are invisible to it, so it cannot be added later.
     egl_rendering: bool = True
@@ -31,6 +38,8 @@ class SimConfig:
         positive = {
             "timestep": self.timestep, "gravity": self.gravity,
             "linear_velocity_tol": self.linear_velocity_tol, "angular_velocity_tol": self.angular_velocity_tol,
+            "sleep_motion": self.sleep_motion, "sleep_linear_velocity": self.sleep_linear_velocity,
+            "sleep_angular_velocity": self.sleep_angular_velocity,
         }
         for name, value in positive.items():
             if not value > 0:

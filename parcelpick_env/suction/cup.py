@@ -92,22 +92,15 @@ def suction_ring_ratios(force: np.ndarray, torque: np.ndarray, mu: float, r: flo
     tx, ty, tz = np.moveaxis(torque, -1, 0)
     friction_cap = mu * (fz + vacuum)
     material_cap = math.pi * r * k
-
-    def ratio(load: np.ndarray, cap: np.ndarray | float) -> np.ndarray:
-        load, cap = np.broadcast_arrays(np.asarray(load, dtype=np.float64), np.asarray(cap, dtype=np.float64))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out = load / np.where(cap > 0.0, cap, 1.0)
-        # no capacity: infinite if loaded (or the ring is pulled off), else nothing to carry
-        return np.where(cap > 0.0, out, np.where((load > 0.0) | (cap < 0.0), np.inf, 0.0))
-
-    return np.stack([
-        ratio(SQRT3 * np.abs(fx), friction_cap),
-        ratio(SQRT3 * np.abs(fy), friction_cap),
-        ratio(SQRT3 * np.abs(tz), r * friction_cap),
-        ratio(SQRT2 * np.abs(tx), material_cap),
-        ratio(SQRT2 * np.abs(ty), material_cap),
-        ratio(np.maximum(-fz, 0.0), vacuum),  # f_z >= -V
-    ], axis=-1)
+    # all six at once (one division, not six small ones: this runs at every step of a carry)
+    loads = np.stack([SQRT3 * np.abs(fx), SQRT3 * np.abs(fy), SQRT3 * np.abs(tz),
+                      SQRT2 * np.abs(tx), SQRT2 * np.abs(ty), np.maximum(-fz, 0.0)], axis=-1)  # f_z >= -V
+    caps = np.stack(np.broadcast_arrays(friction_cap, friction_cap, r * friction_cap, material_cap, material_cap,
+                                        vacuum), axis=-1)
+    has_cap = caps > 0.0
+    out = loads / np.where(has_cap, caps, 1.0)
+    # no capacity: infinite if loaded (or the ring is pulled off), else nothing to carry
+    return np.where(has_cap, out, np.where((loads > 0.0) | (caps < 0.0), np.inf, 0.0))
 
 
 # ----------------------------------------------------------------------------------- the held body
