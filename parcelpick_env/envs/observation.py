@@ -125,8 +125,8 @@ def sample_cloud(frame: "CameraFrame", spec: BinSpec, n: int, rng: np.random.Gen
 
     Sampled without replacement, or padded by repeats; an empty view gives zeros with upward normals.
     The normals are the frame's own, or, for a frame captured without them (``normals=False``),
-    ``normals_at(frame, indices)`` at the sampled points only: estimating the whole cloud's was 80% of
-    the env's capture, for the 5% of the points it observes.
+    ``normals_at(frame, indices)`` at the sampled points only: estimating the whole cloud's (307,200
+    points at 640x480) was 80% of the env's capture, for the 4,096 it observes.
     """
     roi = np.flatnonzero(spec.contains(frame.points))
     total = len(roi)

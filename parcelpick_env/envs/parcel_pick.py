@@ -29,9 +29,9 @@ Replays: with ``record_dir`` set, each episode is written to ``record_dir/episod
 (``self.replay_path``; ``self.recorder`` is the live ``EpisodeRecorder``).
 
 Speed: free-space moves are collision-checked kinematically; the approach runs at the simulator's step
-and lift/transport at ``GraspConfig.carry_dt`` with fewer solver iterations, the resting pile asleep
-during transport (``Simulator.asleep``; see ``grasp.py``). The observed normals are estimated at the
-sampled points only (``Camera.normals_at``).
+and lift/transport at ``GraspConfig.carry_dt`` with fewer solver iterations; the resting pile sleeps
+during transport (``Simulator.asleep``, docs/cell.md). The observed
+normals are estimated at the sampled points only (``Camera.normals_at``).
 """
 
 from __future__ import annotations
@@ -315,10 +315,9 @@ class ParcelPickEnv(gym.Env):
             result = _after_reset(self.executor, "pick executor").attempt(self.scene, point, normal)
             if result.dynamic_steps > 0:
                 bodies = [ps.body_id for ps in self.scene.parcels if self.sim.has_body(ps.body_id)]
-                if bodies:  # what the attempt disturbed comes to rest (cheaper solver, as the pile builder does);
-                    # what it left still sleeps meanwhile, until something strikes it (Simulator.asleep)
-                    with self.sim.physics_overrides(solver_iterations=self.config.grasp.carry_solver_iterations), \
-                            self.sim.asleep(bodies):
+                if bodies:  # the rest of the pile comes to rest (cheaper solver, as the pile builder does), all of
+                    # it awake: a parcel the attempt left balanced at rest may still topple (docs/cell.md)
+                    with self.sim.physics_overrides(solver_iterations=self.config.grasp.carry_solver_iterations):
                         self.sim.settle(bodies, max_steps=self.config.grasp.max_post_settle_steps)
             lost = self._drop_departed()
             s["lost"] += lost
