@@ -37,8 +37,9 @@ def segment_surfaces(points: np.ndarray, normals: np.ndarray, radius: float = 0.
     return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
-def _offsets_to_centroids(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """(N, 3) float64: from each point to the centroid of its segment."""
+def offsets_to_centroids(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(N, 3) float64: from each point to the centroid of its segment (what the levers and sizes are made of;
+    pass it to both when both are wanted)."""
     points = np.asarray(points, dtype=np.float64)
     labels = np.asarray(labels, dtype=np.int64)
     if labels.shape != (len(points),):
@@ -51,19 +52,21 @@ def _offsets_to_centroids(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return centroids[labels] - points
 
 
-def segment_levers(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """(N, 4) float32: the offset from each point to its segment's centroid, then that offset's horizontal length."""
-    offsets = _offsets_to_centroids(points, labels)
+def segment_levers(points: np.ndarray, labels: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
+    """(N, 4) float32: the offset from each point to its segment's centroid, then that offset's horizontal length
+    (``offsets``: ``offsets_to_centroids(points, labels)`` when already computed)."""
+    offsets = offsets_to_centroids(points, labels) if offsets is None else offsets
     return np.concatenate([offsets, np.linalg.norm(offsets[:, :2], axis=1, keepdims=True)], axis=1).astype(np.float32)
 
 
-def segment_sizes(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+def segment_sizes(points: np.ndarray, labels: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:
     """(N, 1) float32: the radius of gyration (RMS distance to the centroid) of each point's segment.
 
     How large the face a point lies on is: a small face is a parcel's side or a fragment, whose centroid is a poor
-    stand-in for the centre of mass. In metres, independent of the point density.
+    stand-in for the centre of mass. In metres, independent of the point density. ``offsets`` as in
+    ``segment_levers``.
     """
-    squared = np.sum(_offsets_to_centroids(points, labels) ** 2, axis=1)
+    squared = np.sum((offsets_to_centroids(points, labels) if offsets is None else offsets) ** 2, axis=1)
     labels = np.asarray(labels, dtype=np.int64)
     if len(labels) == 0:
         return np.zeros((0, SIZE_CHANNELS), dtype=np.float32)

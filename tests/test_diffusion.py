@@ -23,7 +23,7 @@ from policies.diffusion.policy import DiffusionSuctionPolicy
 from policies.diffusion.scheduler import DiffusionSchedule
 from policies.diffusion.synthetic import synthetic_scene
 from policies.postprocess import nms_indices, select_candidates
-from policies.surface_segments import LEVER_UNIT, segment_sizes
+from policies.surface_segments import LEVER_UNIT, offsets_to_centroids, segment_levers, segment_sizes
 
 N = 512
 
@@ -298,6 +298,9 @@ def test_segment_size_is_the_radius_of_gyration_of_each_points_face():
     assert np.allclose(sizes[:4], np.sqrt(2.0)) and np.allclose(sizes[4:], 1.0)
     assert np.allclose(segment_sizes(square * 3.0, labels), 3.0 * sizes)  # metres, not point counts
     assert segment_sizes(np.zeros((0, 3)), np.zeros(0, dtype=int)).shape == (0, 1)
+    offsets = offsets_to_centroids(square, labels)  # shared by the levers and the sizes (model_inputs)
+    assert np.array_equal(segment_sizes(square, labels, offsets), sizes)
+    assert np.array_equal(segment_levers(square, labels, offsets), segment_levers(square, labels))
 
 
 def test_segment_size_and_encoder_levers_reach_the_networks():

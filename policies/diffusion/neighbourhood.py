@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from parcelpick_env.farthest_points import farthest_point_indices
 from policies.diffusion.config import DiffusionConfig
-from policies.surface_segments import segment_levers, segment_sizes, segment_surfaces
+from policies.surface_segments import offsets_to_centroids, segment_levers, segment_sizes, segment_surfaces
 
 
 def grid_sample(points: np.ndarray, count: int) -> np.ndarray:
@@ -123,10 +123,11 @@ def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfi
         out.update(compute_neighbourhoods(points, config, workers))
     if config.uses_segments:
         labels = segment_surfaces(points, normals, config.segment_radius, config.segment_min_cos)
+        offsets = offsets_to_centroids(points, labels)  # once, for the levers and the sizes alike
         if config.segment_levers or config.levers_in_encoder:
-            out["surface_levers"] = segment_levers(points, labels)
+            out["surface_levers"] = segment_levers(points, labels, offsets)
         if config.segment_size:
-            out["surface_size"] = segment_sizes(points, labels)
+            out["surface_size"] = segment_sizes(points, labels, offsets)
     return out
 
 
