@@ -277,6 +277,20 @@ def test_carry_acceleration_budget_matches_the_hand_linearisation():
     assert monitor.allowed_acceleration(tool, com, np.eye(3), 0.30, 0.1) == 0.1  # already past 0.30 at rest
 
 
+@pytest.mark.parametrize("dt, steps", [(1.0 / 60.0, 3), (1.0 / 120.0, 6)])
+def test_a_sustained_violation_breaks_the_seal_after_the_same_time_at_any_step(dt, steps):
+    """``CupSpec.violation_time`` (50 ms) is a time: 3 carry steps or 6 lift steps of a parcel twice too heavy."""
+    from parcelpick_env.suction.cup import HoldMonitor
+
+    cup = CupSpec()
+    heavy = 2.0 * cup.rated_force(ENV_CUP_RADIUS, 1.0) / G  # twice what the vacuum holds: suction ratio 2
+    monitor = HoldMonitor(cup, ENV_CUP_RADIUS, K, G, heavy, np.eye(3) * 0.05, seal=1.0)
+    tool = ToolState(np.zeros(3), np.diag([1.0, -1.0, -1.0]))
+    below = np.array([0.0, 0.0, -0.05])
+    assert [monitor.update(tool, below, np.eye(3), dt=dt) for _ in range(steps - 1)] == [None] * (steps - 1)
+    assert monitor.update(tool, below, np.eye(3), dt=dt) == "suction"
+
+
 def test_hover_height_comes_from_the_tallest_neighbour():
     tall = PlacedBox((0.12, 0.12, 0.35), 1.0, (0.0, 0.08))  # 1 cm beside the low box
     env = make(BoxScene([PlacedBox((0.30, 0.12, 0.08), 0.5, (0.0, -0.05)), tall]))

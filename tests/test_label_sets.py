@@ -89,3 +89,15 @@ def test_the_diffusion_trainer_learns_a_stored_label_set(tmp_path):
                           "physical", "--preset", "tiny", "--steps", "1", "--out", str(tmp_path / "run")],
                          capture_output=True, text=True)
     assert run.returncode != 0 and "not 'physical'" in run.stderr
+
+
+def test_the_diffusion_trainer_refuses_more_points_than_the_data_stores(root, tmp_path):
+    """A model asking for more points than a scene stores would see each one twice: one line, before training."""
+    from policies.diffusion.train import main
+
+    common = ["--data", str(root), "--val-data", str(root), "--preset", "tiny", "--steps", "1", "--threads", "1",
+              "--no-progress"]
+    with pytest.raises(SystemExit, match=r"stores 1024 points per scene, fewer than the model's 2048"):
+        main(common + ["--num-points", "2048", "--out", str(tmp_path / "more")])
+    main(common + ["--num-points", "1024", "--out", str(tmp_path / "same")])
+    assert (tmp_path / "same" / "last.pt").is_file()

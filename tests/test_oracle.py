@@ -237,3 +237,39 @@ def test_leaned_approaches_tilt_towards_the_bin_centre_by_the_asked_angle():
     np.testing.assert_allclose(np.degrees(np.arccos(n2[:, 2])), [10, 10, 18, 18], atol=1e-9)
     inward = -points[:, :2] / np.linalg.norm(points[:, :2], axis=1, keepdims=True)
     np.testing.assert_allclose(n2[:, :2] / np.linalg.norm(n2[:, :2], axis=1, keepdims=True), np.tile(inward, (2, 1)))
+
+
+@pytest.mark.parametrize("extra, blocked", [(-1.5e-3, True), (1.0e-3, False)])
+def test_the_oracle_tool_probe_keeps_the_planners_clearance_between_true_surfaces(extra, blocked):
+    """A cup hanging beside a carton, its side ``PLANNER_CLEARANCE + extra`` from the carton's true face: the
+    planner (pybullet distances between margin-inflated shapes) and the oracle's probe (true meshes) agree.
+    With the planner's bare 10 mm the probe passed a 10.5 mm gap that the planner then refused (a descent
+    'unreachable' on the stacked grid)."""
+    import pybullet as pb
+
+    from parcelpick_env.robot.arm import Gen3Arm
+    from parcelpick_env.sim.config import SimConfig
+    from parcelpick_env.sim.simulator import Simulator
+    from parcelpick_env.suction.collision import collision_scores
+    from parcelpick_env.suction.geometry import build_scene
+    from parcelpick_env.suction.physical import PLANNER_CLEARANCE, physical_tool
+    from tests.meshes import box
+
+    lip = np.array([0.0, 0.05, 0.06])  # the cup's lip, axis straight down; the carton's top is 6 cm above it
+    gap = PLANNER_CLEARANCE + extra
+    extents = (0.10, 0.10, 0.12)
+    centre = (lip[0] + SUCTION.cup_radius + gap + extents[0] / 2, lip[1], extents[2] / 2)
+    with Simulator(SimConfig(egl_rendering=False)) as sim:
+        scene = BoxScene([PlacedBox(extents, 1.0, center=centre)], settle_steps=1)(sim, 0)
+        body = scene.parcels[0].body_id
+        position = np.asarray(pb.getBasePositionAndOrientation(body, physicsClientId=sim.client)[0])
+        arm = Gen3Arm(sim.client)
+        q = arm.ik(lip, np.array([0.0, 0.0, -1.0]), seed=np.asarray(arm.config.ik_seed))
+        assert q is not None
+        hit = arm.planner.collision(q)
+    assert (hit is not None) == blocked
+    if blocked:
+        assert hit.body == body and hit.link == "suction_cup"
+    probe = collision_scores(build_scene([box(extents, position)]), lip[None], np.array([[0.0, 0.0, 1.0]]),
+                             physical_tool(SUCTION))
+    assert probe[0] == (0.0 if blocked else 1.0)

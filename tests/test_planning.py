@@ -177,3 +177,19 @@ def test_a_goal_just_above_a_parcel_plans_with_the_clearance_it_has(world):
     assert 0.0 < arm.planner.stats.extra["margin"] <= 0.0021
     assert arm.planner.path_collision(path, margin=0.0) is None
     assert arm.planner.collision(q_b).body == parcel  # within the configured margin, as said
+
+
+def test_a_start_a_hair_past_a_joint_limit_still_plans(world):
+    """The motors can leave a joint microradians past its limit after a driven move; the next free move plans
+    from the clipped state instead of refusing it (it used to end a whole clearance run)."""
+    c, arm, q_a, q_b = world
+    past = q_a.copy()
+    past[6] = arm.upper[6] + 5e-6
+    arm.set_joints(past)
+    goal = q_b.copy()
+    goal[6] = arm.upper[6] - 0.5
+    traj, why = arm.free_trajectory(goal, 1.0 / 240.0)
+    assert traj is not None, why
+    assert np.all(traj.q >= arm.lower - 1e-9) and np.all(traj.q <= arm.upper + 1e-9)
+    np.testing.assert_allclose(traj.q[0], np.clip(past, arm.lower, arm.upper))
+    np.testing.assert_allclose(traj.q[-1], goal)

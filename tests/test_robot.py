@@ -80,6 +80,23 @@ def test_ik_is_verified_and_within_limits(client):
     np.testing.assert_allclose(arm.q, before)
 
 
+def test_ik_gives_way_to_another_branch_when_the_closest_is_refused(client):
+    """``valid`` (the env passes a collision check) refuses the closest answer: another verified branch comes
+    back, on the target and axis; refusing every answer gives None."""
+    arm = Gen3Arm(client)
+    seed = np.asarray(arm.config.ik_seed)
+    target, axis = np.array([0.1, 0.05, 0.15]), np.array([0.0, 0.0, -1.0])
+    closest = arm.ik(target, axis, seed=seed)
+    assert closest is not None
+    other = arm.ik(target, axis, seed=seed, valid=lambda q: float(np.abs(q - closest).max()) > 0.1)
+    assert other is not None and float(np.abs(other - closest).max()) > 0.1
+    arm.set_joints(other)
+    pos, quat = arm.tip_pose()
+    assert np.linalg.norm(pos - target) < arm.config.ik_position_tol
+    assert Rotation.from_quat(quat).as_matrix()[:, 2] @ axis > math.cos(arm.config.ik_angle_tol)
+    assert arm.ik(target, axis, seed=seed, valid=lambda q: False) is None
+
+
 def test_bin_reachable_top_down(client):
     """The pedestal beside the long side reaches (nearly) the whole default bin top-down."""
     arm = Gen3Arm(client)

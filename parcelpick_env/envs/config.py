@@ -37,7 +37,10 @@ class GraspConfig:
     # contact seal quality below this holds nothing: the lip leaks so much that the ejector builds less than
     # 30% of its vacuum (CupSpec's leakage law, 17.6 kPa at 0.2); above it the leak-reduced vacuum decides
     seal_threshold: float = 0.2
-    carry_dt: float = 1.0 / 60.0  # s, physics step while lifting and carrying (the pile sits still)
+    carry_dt: float = 1.0 / 60.0  # s, physics step while carrying (the pile sleeps, Simulator.asleep)
+    # s, physics step while lifting: the pile is awake, and at 60 Hz a mailer sliding off the rising parcel at
+    # 1 m/s sinks 17 mm in one step and falls through the 2 cm floor (docs/cell.md, 'Tunnelling')
+    lift_dt: float = 1.0 / 120.0
     carry_solver_iterations: int = 20
     carry_load_target: float = CARRY_LOAD_TARGET  # the carry is timed so no predicted ring load exceeds this share of capacity
     min_carry_acceleration: float = 0.1  # m/s^2: floor of that timing (a parcel loaded past the target still moves)
@@ -69,10 +72,11 @@ class GraspConfig:
                 f"seal_threshold must be in [0, 1], got {self.seal_threshold}")
         require_positive_numbers(self, ("pregrasp_distance", "overshoot", "approach_speed", "touch_force", "clearance",
                                         "hover_clearance", "hover_corridor", "control_dt_free", "trace_interval",
-                                        "seal_dwell", "carry_dt", "ready_height", "carry_load_target",
+                                        "seal_dwell", "carry_dt", "lift_dt", "ready_height", "carry_load_target",
                                         "min_carry_acceleration", "carry_speed", "min_lift", "wall_relief",
                                         "wall_relief_rise"))
         require(self.carry_dt <= 0.05, "GraspConfig", f"carry_dt must be <= 0.05 s, got {self.carry_dt}")
+        require(self.lift_dt <= 0.05, "GraspConfig", f"lift_dt must be <= 0.05 s, got {self.lift_dt}")
         require(self.carry_load_target < 1.0, "GraspConfig",
                 f"carry_load_target must be < 1 (a share of capacity), got {self.carry_load_target}")
         require_positive_ints(self, ("carry_solver_iterations",))

@@ -365,7 +365,8 @@ class PickExecutor:
         hover = pre.copy()
         hover[2] = max(pre[2], clear)
         pick = _Pick(point, normal, axis, hover, pre)
-        pick.q_hover = arm.ik(hover, axis, seed=self.ready_q)
+        # an IK branch whose wrist would stand in a wall gives way to a collision-free one (the yaw is free)
+        pick.q_hover = arm.ik(hover, axis, seed=self.ready_q, valid=lambda q: self.planner.collision(q) is None)
         if pick.q_hover is None and hover[2] > pre[2] + 1e-3:  # high above a heap: solve low, climb the line
             pick.q_hover = self._climb(pre, hover, axis)
         if pick.q_hover is None:
@@ -535,7 +536,7 @@ class PickExecutor:
         attached (the simulated constraint's position lag is numerics, not a changing lever)."""
         return tool.tip + tool.R @ pick.com_in_tool, tool.R @ pick.R_in_tool
 
-    def _carry_step(self, pick: _Pick, move: str, exempt: set[int]) -> Callable[[], object]:
+    def _carry_step(self, pick: _Pick, move: str, exempt: set[int], dt: float) -> Callable[[], object]:
         """The per-step hold check of a carrying move.
 
         A held parcel pressing harder than ``ArmConfig.collision_force`` (the arm links' own rule) on a
@@ -550,7 +551,7 @@ class PickExecutor:
         keeping the walls' reaction charged the cup with a sideways load that nothing exerts (torsion
         drops at the first millimetre of the lift). Once the parcel is off its supports, wall contacts
         count in full. A ring condition
-        violated for ``CupSpec.violation_steps`` steps in a row breaks the seal: dropped.
+        violated for ``CupSpec.violation_time`` in a row (steps of ``dt``) breaks the seal: dropped.
         """
         strike, client, body = self.arm.config.collision_force, self.sim.client, pick.held.body_id
         walls = {b for b in exempt if self._is_static(b)}
@@ -567,7 +568,7 @@ class PickExecutor:
             # pose and velocity measured, acceleration as commanded (the executed trajectory's)
             qdd = _required(self.arm.command, "the arm's servoed command (set by Gen3Arm.execute)")[2]
             tool = ToolState(*self.kin.tool_motion(self.arm.q, self.arm.qd, qdd))
-            cause = monitor.update(tool, *self._held_pose(pick, tool), loads.points, loads.forces)
+            cause = monitor.update(tool, *self._held_pose(pick, tool), loads.points, loads.forces, dt=dt)
             if cause is None:
                 return None
             if hardest is not None:  # the seal broke while the parcel was pressing on something: it struck it
@@ -586,11 +587,13 @@ class PickExecutor:
         monitor = _required(pick.monitor, "the hold monitor (set when the parcel is attached)")
         a_max = monitor.allowed_acceleration(tool, *self._held_pose(pick, tool), g.carry_load_target,
                                              g.min_carry_acceleration)
+        # the lift runs with the pile awake at the finer lift_dt (a neighbour sliding off must not tunnel)
+        dt = g.lift_dt if move == "lift" else g.carry_dt
         if move == "transport":  # the chord, round the base where it dips inside the arm's reach, or turned down
             traj, why = self._transport_line(arm.q, end, pick, a_max)
         else:
-            traj, why = (self._carry_line(arm.q, end, pick, a_max) if via is None
-                         else self._carry_legs(arm.q, [via, end], pick, a_max))
+            traj, why = (self._carry_line(arm.q, end, pick, a_max, dt) if via is None
+                         else self._carry_legs(arm.q, [via, end], pick, a_max, dt))
         if traj is None:
             return self._report(move, "unreachable", Failure(move, condition=why), t_start=t0)
         if move == "transport":  # the held parcel is part of the check: it must clear the rim and the pile
@@ -601,9 +604,9 @@ class PickExecutor:
             pick.lift = traj
         # In transport the parcel is clear of the pile, which sleeps (Simulator.asleep) until something strikes it
         resting = [ps.body_id for ps in scene.parcels if ps.body_id != pick.held.body_id] if move == "transport" else []
-        with self.sim.physics_overrides(timestep=g.carry_dt, solver_iterations=g.carry_solver_iterations), \
+        with self.sim.physics_overrides(timestep=dt, solver_iterations=g.carry_solver_iterations), \
                 self.sim.asleep(resting):
-            res = self._execute(traj, on_step=self._carry_step(pick, move, exempt))
+            res = self._execute(traj, on_step=self._carry_step(pick, move, exempt, dt))
         if res.collision is not None:
             return self._report(move, "collision", Failure(move, res.link, body=res.collision.body), res.steps, t0)
         if res.stopped_by is not None:
@@ -611,16 +614,17 @@ class PickExecutor:
             return self._report(move, outcome, failure, res.steps, t0)
         return self._report(move, steps=res.steps, t_start=t0)
 
-    def _carry_line(self, q0: np.ndarray, end: np.ndarray, pick: _Pick, a_max: float
+    def _carry_line(self, q0: np.ndarray, end: np.ndarray, pick: _Pick, a_max: float, dt: float | None = None
                     ) -> tuple[Trajectory | None, str | None]:
         """A carrying line at the contact axis, the cup's yaw held; failing that with the yaw free (the
         held yaw may need an IK branch switch: the cup may then turn, and the wrench has I alpha)."""
         g = self.grasp
+        step = g.carry_dt if dt is None else dt
         axis = (_required(pick.contact_axis, "the contact axis (set by seal)") if pick.carry_axis is None
                 else pick.carry_axis)
-        traj, why = self._line(q0, end, axis, g.carry_dt, g.carry_speed, a_max, pick.x_axis)
+        traj, why = self._line(q0, end, axis, step, g.carry_speed, a_max, pick.x_axis)
         if traj is None:
-            traj, why = self._line(q0, end, axis, g.carry_dt, g.carry_speed, a_max)
+            traj, why = self._line(q0, end, axis, step, g.carry_speed, a_max)
         return traj, why
 
     def _transport_line(self, q0: np.ndarray, end: np.ndarray, pick: _Pick, a_max: float
@@ -699,12 +703,12 @@ class PickExecutor:
         traj, why_legs = self._carry_legs(q0, [via, end], pick, a_max)
         return (traj, None) if traj is not None else (None, f"{why} (round the base: {why_legs})")
 
-    def _carry_legs(self, q0: np.ndarray, points: list[np.ndarray], pick: _Pick, a_max: float
-                    ) -> tuple[Trajectory | None, str | None]:
+    def _carry_legs(self, q0: np.ndarray, points: list[np.ndarray], pick: _Pick, a_max: float,
+                    dt: float | None = None) -> tuple[Trajectory | None, str | None]:
         """Carrying lines through ``points`` in turn (``_carry_line``), each timed rest-to-rest."""
         legs, q = [], q0
         for point in points:
-            leg, why = self._carry_line(q, point, pick, a_max)
+            leg, why = self._carry_line(q, point, pick, a_max, dt)
             if leg is None:
                 return None, why
             legs.append(leg)

@@ -219,15 +219,17 @@ class Gen3Arm:
 
     # --- inverse kinematics ------------------------------------------------------------------------
     def ik(self, position: Sequence[float] | np.ndarray, axis: Sequence[float] | np.ndarray,
-           seed: np.ndarray | None = None, x_axis: Sequence[float] | np.ndarray | None = None) -> np.ndarray | None:
+           seed: np.ndarray | None = None, x_axis: Sequence[float] | np.ndarray | None = None,
+           valid: Callable[[np.ndarray], bool] | None = None) -> np.ndarray | None:
         """Joint angles putting the tool tip at ``position`` with its approach axis along ``axis``.
 
         pybullet's null-space IK (joint limits, rest pose = seed) gives initial guesses for a few tool
         yaws; each is refined by damped least squares on position and axis only (the cup is
         axisymmetric, so its yaw is free) within the joint limits, then verified by pybullet's own
         forward kinematics. Returns the verified answer closest to the seed, or None.
-        ``x_axis`` also fixes the cup's yaw (its x axis, projected orthogonal to ``axis``).
-        The arm's state is left unchanged.
+        ``x_axis`` also fixes the cup's yaw (its x axis, projected orthogonal to ``axis``). ``valid``, if
+        given, must accept an answer (a collision check, say): the closest answer it refuses gives way to
+        another branch from the other guesses. The arm's state is left unchanged.
         """
         cfg = self.config
         saved_q, saved_qd = self.q.copy(), self.qd.copy()
@@ -272,7 +274,8 @@ class Gen3Arm:
                 reached = Rotation.from_quat(quat).as_matrix()[:, 2]
                 yaw_ok = xa is None or Rotation.from_quat(quat).as_matrix()[:, 0] @ xa >= math.cos(cfg.ik_angle_tol)
                 if (np.linalg.norm(pos - target) <= cfg.ik_position_tol and yaw_ok
-                        and math.acos(float(np.clip(reached @ ax, -1.0, 1.0))) <= cfg.ik_angle_tol):
+                        and math.acos(float(np.clip(reached @ ax, -1.0, 1.0))) <= cfg.ik_angle_tol
+                        and (valid is None or valid(q))):
                     cost = float(np.abs(q - seed).max())
                     if best is None or cost < best[0]:
                         best = (cost, q)
@@ -354,11 +357,14 @@ class Gen3Arm:
                         ignore_bodies: Iterable[int] = (), speed_scale: float = 1.0
                         ) -> tuple[Trajectory | None, str | None]:
         """A planned (collision-free) and timed free-space move from ``arm.q`` to ``q_goal``:
-        (trajectory, None), or (None, the planner's reason)."""
-        path = self.planner.plan(self.q, q_goal, attached=attached, ignore_bodies=ignore_bodies)
+        (trajectory, None), or (None, the planner's reason). The start is the arm's state clipped to the
+        joint limits: a driven joint can end a move a few microradians past one (measured: joint 7 at
+        2 pi + 5e-6 after a carry), which the planner would refuse as a start."""
+        start = np.clip(self.q, self.lower, self.upper)
+        path = self.planner.plan(start, q_goal, attached=attached, ignore_bodies=ignore_bodies)
         if path is None:
             return None, self.planner.last_failure
-        return joint_trajectory(self.q, path[1:], self.limits.scaled(speed_scale), dt), None
+        return joint_trajectory(start, path[1:], self.limits.scaled(speed_scale), dt), None
 
     # --- contacts -----------------------------------------------------------------------------------
     def contacts(self) -> list[Contact]:

@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 
 BIN_RGBA = (0.45, 0.47, 0.50, 1.0)
 GROUND_RGBA = (0.30, 0.30, 0.30, 1.0)
+# m: the floor and the ground collide as slabs this thick, so their mid-planes lie 10 cm below the surface, deeper
+# than anything sinks in one step (a parcel at 5 m/s moves 8 cm per carry step)
+SOLID_DEPTH = 0.2
 
 # Geometry derived from an asset once per process (the asset is immutable).
 _GEOMETRY_CACHE: "weakref.WeakKeyDictionary[ParcelAsset, dict]" = weakref.WeakKeyDictionary()
@@ -270,13 +273,19 @@ class Simulator:
         boxes = spec.meshes()
         half = [list(m.extents / 2) for m in boxes]
         centres = [list(m.bounds.mean(axis=0)) for m in boxes]
-        col = pb.createCollisionShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=half,
-                                           collisionFramePositions=centres, physicsClientId=self.client)
+        # The floor collides as a slab SOLID_DEPTH thick below its top (its visual keeps the wall thickness): a
+        # box penetrated past its mid-plane pushes the intruder out of its far side, and a thin mailer falling
+        # 1 m/s moves 17 mm per carry step, most of the 2 cm floor (docs/cell.md, 'Tunnelling').
+        col_half, col_centres = [list(h) for h in half], [list(c) for c in centres]
+        col_half[0][2] = SOLID_DEPTH / 2
+        col_centres[0][2] = spec.floor_z - SOLID_DEPTH / 2
+        col = pb.createCollisionShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=col_half,
+                                           collisionFramePositions=col_centres, physicsClientId=self.client)
         vis = pb.createVisualShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=half,
                                         visualFramePositions=centres, rgbaColors=[BIN_RGBA] * len(boxes),
                                         physicsClientId=self.client)
         bin_id = pb.createMultiBody(0.0, col, vis, physicsClientId=self.client)
-        ground_half = [3.0, 3.0, 0.01]
+        ground_half = [3.0, 3.0, SOLID_DEPTH / 2]
         gz = spec.floor_z - spec.wall_thickness - ground_half[2]
         gcol = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=ground_half, physicsClientId=self.client)
         gvis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=ground_half, rgbaColor=GROUND_RGBA,

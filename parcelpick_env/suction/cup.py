@@ -33,7 +33,7 @@ import numpy as np
 import pybullet as p
 import trimesh
 
-from parcelpick_env.config_checks import require, require_positive_ints, require_positive_numbers
+from parcelpick_env.config_checks import require, require_positive_numbers
 from parcelpick_env.robot.kinematics import cross_rows
 
 CONDITIONS: tuple[str, ...] = ("friction_x", "friction_y", "friction_torsion", "material_x", "material_y",
@@ -57,13 +57,12 @@ class CupSpec:
     safety_factor: float = 1.5  # vendors' S on F = dP * A (1.5 horizontal/slow, 2 and up for fast or vertical)
     leak_ratio: float = 3.0  # beta: open-lip conductance over the ejector's; dP(s) = dP0 / (1 + beta (1 - s))
     friction: float = 0.5  # mu of the lip on cardboard and film
-    violation_steps: int = 3  # a ring condition violated this many steps in a row breaks the seal
+    violation_time: float = 0.05  # s a ring condition violated in a row breaks the seal (3 steps of the 60 Hz carry)
 
     def __post_init__(self) -> None:
-        require_positive_numbers(self, ("vacuum_kpa", "friction"))
+        require_positive_numbers(self, ("vacuum_kpa", "friction", "violation_time"))
         require(self.safety_factor >= 1.0, "CupSpec", f"safety_factor must be >= 1, got {self.safety_factor}")
         require(self.leak_ratio >= 0.0, "CupSpec", f"leak_ratio must be >= 0, got {self.leak_ratio}")
-        require_positive_ints(self, ("violation_steps",))
 
     def vacuum_pa(self, seal: float | np.ndarray) -> float | np.ndarray:
         """Cup vacuum (Pa below ambient) at contact seal quality ``seal`` (the leakage law above);
@@ -200,7 +199,7 @@ class HoldMonitor:
     """Checks the ring conditions each step of a hold and breaks the seal after a sustained violation.
 
     ``update(tool, com, R_body, contacts)`` returns the failed condition's name once a violation has
-    lasted ``CupSpec.violation_steps`` steps, else None; ``peak`` keeps the largest ratio of each
+    lasted ``CupSpec.violation_time`` (the steps' ``dt`` summed), else None; ``peak`` keeps the largest ratio of each
     condition and ``trace`` every step's (force, torque, ratios).
     """
 
@@ -209,7 +208,7 @@ class HoldMonitor:
         self.cup, self.r, self.k, self.g = cup, radius, material_k, gravity
         self.mass, self.inertia_body = float(mass), np.asarray(inertia_body, dtype=np.float64)
         self.vacuum = cup.rated_force(radius, seal)
-        self.run = 0
+        self.run = 0.0  # s the current violation has lasted
         self.peak = np.zeros(len(CONDITIONS))
         self.trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.cause: str | None = None
@@ -222,16 +221,17 @@ class HoldMonitor:
         return force, torque, suction_ring_ratios(force, torque, self.cup.friction, self.r, self.k, self.vacuum)
 
     def update(self, tool: ToolState, com: np.ndarray, R_body: np.ndarray,
-               contact_points: np.ndarray | None = None, contact_forces_w: np.ndarray | None = None) -> str | None:
+               contact_points: np.ndarray | None = None, contact_forces_w: np.ndarray | None = None, *,
+               dt: float) -> str | None:
         force, torque, ratios = self.ratios(tool, com, R_body, contact_points, contact_forces_w)
         self.trace.append((force, torque, ratios))
         finite = np.nan_to_num(ratios, posinf=1e9)
         self.peak = np.maximum(self.peak, finite)
         if not np.any(ratios > 1.0):
-            self.run = 0
+            self.run = 0.0
             return None
-        self.run += 1
-        if self.run < self.cup.violation_steps:
+        self.run += dt
+        if self.run < self.cup.violation_time - 1e-9:  # 3 steps of 1/60 s sum to 0.05 s within rounding
             return None
         # the vacuum losing first makes f_N <= 0 and so every friction ratio infinite: name the root cause
         self.cause = "suction" if ratios[-1] > 1.0 else CONDITIONS[int(np.argmax(finite))]

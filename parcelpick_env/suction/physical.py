@@ -31,6 +31,7 @@ import open3d as o3d
 from parcelpick_env.robot.gen3 import LINKS, SuctionToolSpec
 from parcelpick_env.robot.gen3 import RADII as GEN3_RADII
 from parcelpick_env.robot.planning import PlannerConfig
+from parcelpick_env.sim.config import SimConfig
 from parcelpick_env.suction.config import SuctionConfig
 from parcelpick_env.suction.cup import CupSpec, suction_ring_ratios
 
@@ -100,8 +101,14 @@ def hanging_ratios(tips: np.ndarray, axes: np.ndarray, coms: np.ndarray, masses:
     return np.asarray(ratios).reshape(len(tips), -1)
 
 
+# m of true geometry the planner keeps: it measures between shapes that pybullet inflates by their collision margin
+# (the cup's and the parcel's), so its 10 mm are 12 mm between the true surfaces (measured: a cup 10.5 mm from a
+# parcel's hull is reported 8.6 mm away, and a pick the probe cleared at 10 mm was blocked in its descent)
+PLANNER_CLEARANCE = PlannerConfig().margin + 2 * SimConfig().collision_margin
+
+
 def physical_tool(suction: SuctionConfig, tool: SuctionToolSpec = SuctionToolSpec(),
-                  margin: float = PlannerConfig().margin) -> SuctionConfig:
+                  margin: float = PLANNER_CLEARANCE) -> SuctionConfig:
     """The env's cup config with the collision probe widened to the physical tool plus the clearance the
     motion planner keeps: as wide as the cup's lip from the lip to the flange, then the widest of the
     flange and the wrist links above it (the URDF's own figures; the labels' 10 mm probe is narrower than

@@ -149,6 +149,12 @@ def make_datasets(args: argparse.Namespace, config: DiffusionConfig) -> tuple[Da
             label_set=args.label_set)
     except ValueError as e:  # a label set the dataset does not hold
         raise SystemExit(f"error: {e}") from e
+    for flag, root, data in (("--data", args.data, train), ("--val-data", args.val_data, val)):
+        stored = None if data is None else data.store.config.get("annotation_points")
+        if stored is not None and config.num_points > int(stored):
+            raise SystemExit(f"error: {flag} {root} stores {stored} points per scene, fewer than the model's "
+                             f"{config.num_points} (--num-points / --preset): each point would be fed twice; "
+                             f"generate it with `python -m dataset.generate --points {config.num_points}`")
     if val is not None:
         return train, val
     n = len(train)
