@@ -365,8 +365,10 @@ class PickExecutor:
         hover = pre.copy()
         hover[2] = max(pre[2], clear)
         pick = _Pick(point, normal, axis, hover, pre)
-        # an IK branch whose wrist would stand in a wall gives way to a collision-free one (the yaw is free)
-        pick.q_hover = arm.ik(hover, axis, seed=self.ready_q, valid=lambda q: self.planner.collision(q) is None)
+        # an IK branch whose wrist would stand in a wall gives way to another (the yaw is free); a goal closer
+        # than the planner's margin but not touching stays acceptable, as the planner accepts it
+        pick.q_hover = arm.ik(hover, axis, seed=self.ready_q,
+                              valid=lambda q: self.planner.collision(q, margin=0.0) is None)
         if pick.q_hover is None and hover[2] > pre[2] + 1e-3:  # high above a heap: solve low, climb the line
             pick.q_hover = self._climb(pre, hover, axis)
         if pick.q_hover is None:
