@@ -94,13 +94,18 @@ def read_json(path: Path) -> Any:
     return json.loads(path.read_text())
 
 
+def forced(name: str, force: Sequence[str]) -> bool:
+    """Whether ``--force`` names the part ``name`` (by a prefix of it)."""
+    return any(name.startswith(prefix) for prefix in force)
+
+
 def run_parts(parts: Sequence[Part], force: Sequence[str] = (), log: Callable[[str], None] = print
               ) -> dict[str, str]:
     """Run every unfinished part in order; ``{name: 'ran' | 'skipped'}``. An exception stops the run (the
     finished parts stay finished)."""
     status: dict[str, str] = {}
     for part in parts:
-        if part.output.is_file() and not any(part.name.startswith(f) for f in force):
+        if part.output.is_file() and not forced(part.name, force):
             status[part.name] = "skipped"
             continue
         log(f"[results] {part.name}")
@@ -119,16 +124,25 @@ def _subprocess(argv: Sequence[str]) -> dict[str, Any]:
     return {"argv": list(argv), "stdout": done.stdout}
 
 
-def _generate(out: str, scenes: int, args: Sequence[str], cfg: ResultsConfig) -> Callable[[], Any]:
+def _generate(out: str, scenes: int, args: Sequence[str], cfg: ResultsConfig, fresh: bool = False
+              ) -> Callable[[], Any]:
+    """The part that generates a data split. ``fresh`` (the part is forced): an existing set is moved aside, never
+    deleted, and generated again; otherwise ``dataset.generate`` resumes it, and keeps a complete one as it is."""
     def run() -> dict[str, Any]:
         from policies.provenance import manifest_sha256
+
+        root = Path(REPO, out)
+        if fresh and root.exists():
+            aside = root.with_name(f"{root.name}.replaced-{time.strftime('%Y%m%dT%H%M%S')}")
+            root.rename(aside)
+            print(f"[results] {out} moved to {aside} (forced: generated again)")
 
         argv = ["-m", "dataset.generate", "--out", out, "--scenes", str(scenes), *args,
                 "--workers", str(cfg.report.workers), "--backend", cfg.report.backend, "--no-progress"]
         if cfg.report.ray_address:
             argv += ["--ray-address", cfg.report.ray_address]
         result = _subprocess(argv)
-        return {"argv": result["argv"], "manifest_sha256": manifest_sha256(out)}
+        return {"argv": result["argv"], "manifest_sha256": manifest_sha256(root)}
     return run
 
 
@@ -161,11 +175,11 @@ def _bench_part(script: Path) -> Callable[[], Any]:
 def plan(cfg: ResultsConfig) -> list[Part]:
     """Every part, in the order they run."""
     work, r = Path(cfg.work), cfg.report
-    parts = [Part("data/test", work / "data" / "test.json", _generate(r.test_data, cfg.test_scenes, TEST_DATA_ARGS,
-                                                                       cfg))]
+    parts = [Part("data/test", work / "data" / "test.json",
+                  _generate(r.test_data, cfg.test_scenes, TEST_DATA_ARGS, cfg, forced("data/test", cfg.force)))]
     if cfg.train:
         parts.append(Part("data/train", work / "data" / "train.json",
-                          _generate(r.train_data, cfg.train_scenes, TRAIN_DATA_ARGS, cfg)))
+                          _generate(r.train_data, cfg.train_scenes, TRAIN_DATA_ARGS, cfg, forced("data/train", cfg.force))))
         parts += [Part(f"train/{v.name}/seed{seed}", work / "train" / v.name / f"seed{seed}.json",
                        _train_variant(v, seed, cfg), ("data/train",))
                   for seed in r.ablation_seeds for v in TRAINED_VARIANTS]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections import Counter
 from dataclasses import asdict
@@ -81,7 +82,7 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     (bench_dir / "RESULTS.md").write_text("# Benchmarks\n\nHand-written goals: keep me.\n")
     monkeypatch.setattr(results, "REPO", tmp_path)
     calls: Counter = Counter()
-    monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg: lambda: calls.update(["data"]) or {})
+    monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg, fresh=False: lambda: calls.update(["data"]) or {})
     monkeypatch.setattr(orchestration, "evaluate_policy_ap", lambda name, cfg: calls.update([f"ap/{name}"])
                         or _fake_ap(name, cfg))
     monkeypatch.setattr(orchestration, "evaluate_ablations", lambda cfg, main_ap: calls.update(["ablations"]) or [])
@@ -117,6 +118,35 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     assert set(results.regenerate(cfg, log=lambda _: None)["status"].values()) == {"skipped"} and calls == before
     page = (bench_dir / "RESULTS.md").read_text()  # regenerated twice: the hand-written text stays, once
     assert page.count("keep me") == 1 and page.count(results.GENERATED_BEGIN) == 1 and page.count("| x | 1 |") == 1
+
+
+def test_a_forced_data_part_generates_anew_and_keeps_the_old_set_beside_it(tmp_path: Path, monkeypatch):
+    """``--force data/test`` regenerates (``dataset.generate`` alone would resume a complete set and keep it); the
+    old set is moved aside, never deleted. Unforced, an existing set is handed to the generator as it is."""
+    monkeypatch.setattr(results, "REPO", tmp_path)
+    old = tmp_path / "data" / "test"
+    old.mkdir(parents=True)
+    (old / "manifest.json").write_text('{"old": true}')
+    seen: list[bool] = []
+
+    def generate(argv):
+        seen.append(old.exists())
+        old.mkdir(parents=True, exist_ok=True)
+        (old / "manifest.json").write_text('{"new": true}')
+        return {"argv": list(argv), "stdout": ""}
+
+    monkeypatch.setattr(results, "_subprocess", generate)
+    cfg = results.ResultsConfig(report=results.ReportConfig(test_data="data/test"))
+    results._generate("data/test", 2, ["--seed", "1"], cfg)()
+    assert seen == [True] and not list(old.parent.glob("test.replaced-*"))
+    assert results.forced("data/test", ("data",)) and not results.forced("data/test", ("ap",))
+    (old / "manifest.json").write_text('{"old": true}')
+    value = results._generate("data/test", 2, ["--seed", "1"], cfg, fresh=True)()
+    assert seen == [True, False]
+    kept = list(old.parent.glob("test.replaced-*"))
+    assert len(kept) == 1 and json.loads((kept[0] / "manifest.json").read_text()) == {"old": True}
+    assert json.loads((old / "manifest.json").read_text()) == {"new": True}
+    assert value["manifest_sha256"] == hashlib.sha256(b'{"new": true}').hexdigest()
 
 
 def test_make_results_tests_on_big_piles_under_both_definitions(tmp_path: Path):
