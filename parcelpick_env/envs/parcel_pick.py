@@ -29,8 +29,8 @@ Replays: with ``record_dir`` set, each episode is written to ``record_dir/episod
 (``self.replay_path``; ``self.recorder`` is the live ``EpisodeRecorder``).
 
 Speed: free-space moves are collision-checked kinematically; the approach runs at the simulator's step
-and lift/transport at ``GraspConfig.carry_dt`` with fewer solver iterations; the resting pile sleeps
-during transport (``Simulator.asleep``, docs/cell.md). The observed
+the lift at ``GraspConfig.lift_dt`` and the transport at the coarser ``carry_dt``, both with fewer solver
+iterations; the resting pile sleeps during transport (``Simulator.asleep``, docs/cell.md). The observed
 normals are estimated at the sampled points only (``Camera.normals_at``).
 """
 
