@@ -18,7 +18,8 @@ from parcelpick_env.assets.generator import CARTON_SIDE_RANGE, CUP_MASS_LIMIT, M
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.envs.config import ENV_CUP_RADIUS, GraspConfig
 from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
-from parcelpick_env.envs.grasp import CONDITIONS, MOVES
+from parcelpick_env.envs.grasp import CONDITIONS, LINE_STEP, MOVES
+from parcelpick_env.robot.arm import MAX_IK_JUMP
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 from parcelpick_env.suction.cup import CupSpec, ToolState, contact_forces, cup_wrench, mesh_inertia
 
@@ -303,6 +304,56 @@ def test_hover_height_comes_from_the_tallest_neighbour():
         far = env.executor._plan(env.scene, low.position + [0.14, 0.02, 0.04], np.array([0.0, 0.0, 1.0]))
         low_top = env.sim.aabb(low.body_id)[1][2]  # beyond the 8 cm corridor only the low box itself counts
         assert far.hover[2] == pytest.approx(low_top + env.config.grasp.hover_clearance, abs=1e-6)
+    finally:
+        env.close()
+
+
+def test_a_hover_beyond_reach_gives_way_to_the_highest_the_arm_reaches_above_the_pick():
+    column = PlacedBox((0.08, 0.08, 1.0), 1.0, (0.19, -0.05))  # a static 1 m column 5 cm beside the pick
+    env = make(BoxScene([PlacedBox((0.30, 0.12, 0.08), 0.5, (0.0, -0.05))], fixtures=[column]))
+    try:
+        env.reset(seed=0)
+        ex, down = env.executor, np.array([0.0, 0.0, -1.0])
+        point = env.scene.parcels[0].position + [0.10, 0.0, 0.04]
+        pick = ex._plan(env.scene, point, np.array([0.0, 0.0, 1.0]))
+        # the hover the pile asks for (the column's top + clearance) is beyond the arm: no IK answer there
+        assert pick.hover[2] > 1.0 and ex.arm.ik(pick.hover, down, seed=ex.ready_q) is None
+        tip = ex.kin.forward(pick.q_hover)[0]
+        # so the plan climbs from the pre-grasp point up its vertical (before: 'unreachable' at the hover's IK)
+        np.testing.assert_allclose(tip[:2], pick.pre[:2], atol=2e-3)
+        assert pick.pre[2] + 0.5 < tip[2] < pick.hover[2]
+        assert ex.arm.ik(tip + [0.0, 0.0, LINE_STEP], down, seed=pick.q_hover) is None  # as high as it reaches
+        np.testing.assert_allclose(ex.kin.forward(pick.descend.q[-1])[0], pick.pre, atol=2e-3)  # and comes down
+    finally:
+        env.close()
+
+
+def test_a_line_whose_ik_turns_fast_but_continuously_is_kept_and_a_branch_switch_is_not(monkeypatch):
+    env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0)]))
+    try:
+        env.reset(seed=0)
+        ex, down = env.executor, np.array([0.0, 0.0, -1.0])
+        q0 = env.arm.q.copy()
+        start = ex.kin.forward(q0)[0]
+        end = start + [0.0, 0.0, 4 * LINE_STEP]
+
+        def fake_path(turn):  # joint 0 turns 0.3 rad along the line, as ``turn`` spreads it
+            def path(q, points, axis, x_axis=None):
+                u = (np.asarray(points)[:, 2] - start[2]) / (end[2] - start[2])
+                return [q0 + np.eye(7)[0] * turn(v) for v in u]
+            return path
+
+        continuous = fake_path(lambda u: 0.3 * float(np.clip((u - 0.3) / 0.2, 0.0, 1.0)))  # over 20% of the line
+        switch = fake_path(lambda u: 0.3 * float(u > 0.4))
+        coarse = np.array(continuous(q0, start + np.outer([0.0, 0.25, 0.5, 0.75, 1.0], end - start), down))
+        assert np.abs(np.diff(coarse, axis=0)).max() > MAX_IK_JUMP  # at LINE_STEP it looks like a switch
+        monkeypatch.setattr(env.arm, "cartesian_path", continuous)
+        traj, why = ex._line(q0, end, down, 1 / 60, 0.3)
+        # 4 times finer, every neighbour pair differs by under half of MAX_IK_JUMP: a continuous turn, kept
+        assert why is None and traj is not None and np.abs(np.diff(traj.q[[0, -1]], axis=0)).max() == pytest.approx(0.3)
+        monkeypatch.setattr(env.arm, "cartesian_path", switch)
+        traj, why = ex._line(q0, end, down, 1 / 60, 0.3)
+        assert traj is None and why == "ik jumped 0.30 rad between neighbouring points"
     finally:
         env.close()
 

@@ -54,6 +54,7 @@ OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", 
                              "invalid_action")
 MOVES: tuple[str, ...] = ("plan", "hover", "descend", "approach", "seal", "lift", "transport", "release",
                           "retreat")
+FINE_STEPS = 4  # a line whose IK jumps is solved again this many times finer (``_line``)
 LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump branches near the drop zone)
 LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
 WALL_NORMAL_Z = 0.5  # a static contact whose normal is within 60 deg of horizontal is a wall (else floor)
@@ -260,14 +261,19 @@ class PickExecutor:
         arm = self.arm
         q0 = np.asarray(q0, dtype=np.float64)
         start = self.kin.forward(q0)[0]
-        n = max(1, math.ceil(float(np.linalg.norm(end - start)) / step))
-        qs = arm.cartesian_path(q0, start + (end - start) * (np.arange(1, n + 1)[:, None] / n), axis, x_axis)
-        if qs is None:
-            return None, "ik failed along the line"
-        path = np.vstack([q0[None], np.asarray(qs)])
-        jump = float(np.abs(np.diff(path, axis=0)).max())
-        if jump > MAX_IK_JUMP:
-            return None, f"ik jumped {jump:.2f} rad between neighbouring points"
+        # A joint change above MAX_IK_JUMP between neighbours is a branch switch, or a fast but continuous turn
+        # near a singular pose: a continuous one shrinks with the step (kept, FINE_STEPS times finer), a switch not.
+        for k, limit in ((1, MAX_IK_JUMP), (FINE_STEPS, MAX_IK_JUMP / 2)):
+            n = max(1, math.ceil(float(np.linalg.norm(end - start)) * k / step))
+            qs = arm.cartesian_path(q0, start + (end - start) * (np.arange(1, n + 1)[:, None] / n), axis, x_axis)
+            if qs is None:
+                return None, "ik failed along the line"
+            path = np.vstack([q0[None], np.asarray(qs)])
+            jump = float(np.abs(np.diff(path, axis=0)).max())
+            if jump <= limit:
+                break
+            if k == FINE_STEPS:
+                return None, f"ik jumped {jump:.2f} rad between neighbouring points"
         traj = path_trajectory(path, arm.limits, dt)
         motion = [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
         v = max(float(np.linalg.norm(m[2])) for m in motion)
@@ -369,13 +375,25 @@ class PickExecutor:
         # than the planner's margin but not touching stays acceptable, as the planner accepts it
         pick.q_hover = arm.ik(hover, axis, seed=self.ready_q,
                               valid=lambda q: self.planner.collision(q, margin=0.0) is None)
-        if pick.q_hover is None and hover[2] > pre[2] + 1e-3:  # high above a heap: solve low, climb the line
-            pick.q_hover = self._climb(pre, hover, axis)
+        high = hover[2] > pre[2] + 1e-3
+        why = None
+        if pick.q_hover is not None and high:
+            pick.descend, why = self._line(pick.q_hover, pre, axis, g.control_dt_free, g.carry_speed)
+        if high and pick.descend is None:
+            # above a heap the hover IK may find no answer, or a branch that cannot come straight down (it jumps
+            # mid-line): solve at the pre-grasp point and climb the line instead, as high as the arm reaches
+            climbed = self._climb(pre, hover, axis)
+            if climbed is not None:
+                if float(self.kin.forward(climbed)[0][2]) <= pre[2] + 1e-3:  # no higher: hover at the pre-grasp
+                    pick.q_hover, high = climbed, False
+                else:
+                    descend, why_climbed = self._line(climbed, pre, axis, g.control_dt_free, g.carry_speed)
+                    if descend is not None or pick.q_hover is None:
+                        pick.q_hover, pick.descend, why = climbed, descend, why_climbed
         if pick.q_hover is None:
             return self._report("plan", "unreachable", Failure("hover", condition="ik"))
         q_pre = pick.q_hover
-        if hover[2] > pre[2] + 1e-3:
-            pick.descend, why = self._line(pick.q_hover, pre, axis, g.control_dt_free, g.carry_speed)
+        if high:
             if pick.descend is None:
                 return self._report("plan", "unreachable", Failure("descend", condition=why))
             q_pre = pick.descend.q[-1]
@@ -387,15 +405,21 @@ class PickExecutor:
         return pick
 
     def _climb(self, low: np.ndarray, high: np.ndarray, axis: np.ndarray) -> np.ndarray | None:
-        """Joint angles for ``high`` reached from an IK answer at ``low`` and up the straight line between
-        them (``cartesian_path``): a far, high hover pose that the seed above the bin centre does not
-        converge to is usually one small step from a configuration that reaches the pile below it."""
-        q_low = self.arm.ik(low, axis, seed=self.ready_q)
-        if q_low is None:
+        """Joint angles for the highest point towards ``high`` reached from an IK answer at ``low`` and up the
+        straight line between them (``cartesian_path``, every ``LINE_STEP``), or None without an answer at
+        ``low``. A far, high hover pose that the seed above the bin centre does not converge to is usually one
+        small step from a configuration that reaches the pile below it; one beyond the arm's reach gives way to
+        the highest hover the arm reaches above the pick (the planned free move to it is still collision-free)."""
+        q = self.arm.ik(low, axis, seed=self.ready_q)
+        if q is None:
             return None
         n = max(1, math.ceil(float(np.linalg.norm(high - low)) / LINE_STEP))
-        qs = self.arm.cartesian_path(q_low, low + (high - low) * (np.arange(1, n + 1)[:, None] / n), axis)
-        return None if qs is None else np.asarray(qs[-1])
+        for point in low + (high - low) * (np.arange(1, n + 1)[:, None] / n):
+            step = self.arm.cartesian_path(q, point[None], axis)
+            if step is None or float(np.abs(step[0] - q).max()) > MAX_IK_JUMP:
+                break
+            q = np.asarray(step[0])
+        return q
 
     def _hover(self, scene: Scene, pick: _Pick) -> MoveReport:
         return self._free_move("hover", _required(pick.q_hover, "the hover configuration (set by plan)"))
