@@ -37,20 +37,11 @@ from eval.clearance import LAYOUTS, OBJECT_SETS, EpisodeResult, summarise  # noq
 from eval.report import orchestration  # noqa: E402
 from eval.report.config import DEFAULT_POLICIES, DIFFUSION, PAPER_COMPAT_POLICIES, ReportConfig  # noqa: E402
 from eval.report.markdown import write_report  # noqa: E402
+from eval.report.splits import TEST_DATA_ARGS, TRAIN_DATA_ARGS, DataSplit  # noqa: E402
 from eval.report.variants import TRAINED_VARIANTS  # noqa: E402
 from parcelpick_env.parallel import BACKENDS  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-# The held-out test split every published number uses: 64 scenes (>= 50, so a 3-point paired AP gap resolves;
-# per-scene AP differences spread by about 10 points) of 10 to 50 parcels, stacked and scattered ('random' draws
-# the layout per scene), so that the q = 1 ceiling is 100 and the label oracle's distance to it shows.
-TEST_DATA_ARGS: tuple[str, ...] = ("--split", "test", "--seed", "1", "--parcels", "10", "50", "--layout", "random",
-                                   "--objects", "random", "--points", "4096", "--width", "320", "--height", "240",
-                                   "--scenes-per-shard", "16", "--extra-labels", "physical")
-# What the shipped Diffusion-Suction learnt from (README, "Reproducing the checkpoints"): 1,700 scenes of 1 to 50 parcels.
-TRAIN_DATA_ARGS: tuple[str, ...] = ("--split", "train", "--seed", "0", "--parcels", "1", "50", "--layout", "random",
-                                    "--objects", "random", "--points", "4096", "--width", "320", "--height", "240",
-                                    "--scenes-per-shard", "100", "--extra-labels", "physical")
 
 
 @dataclass(frozen=True)
@@ -172,6 +163,11 @@ def _bench_part(script: Path) -> Callable[[], Any]:
     return lambda: _subprocess([str(script.relative_to(REPO))])
 
 
+def _split_part(split: DataSplit) -> str:
+    """A variant's own split's part: not under 'data/test' or 'data/train', which --force names alone."""
+    return f"data/variants/{Path(split.path).name}"
+
+
 def plan(cfg: ResultsConfig) -> list[Part]:
     """Every part, in the order they run."""
     work, r = Path(cfg.work), cfg.report
@@ -180,8 +176,14 @@ def plan(cfg: ResultsConfig) -> list[Part]:
     if cfg.train:
         parts.append(Part("data/train", work / "data" / "train.json",
                           _generate(r.train_data, cfg.train_scenes, TRAIN_DATA_ARGS, cfg, forced("data/train", cfg.force))))
+        # The variants' own splits (more points per scene), each once however many variants read it.
+        own = {split.path: split for v in TRAINED_VARIANTS for split in (v.train_split, v.test_split) if split}
+        parts += [Part(_split_part(split), work / f"{_split_part(split)}.json",
+                       _generate(split.path, split.scenes, split.generate_args(), cfg,
+                                 forced(_split_part(split), cfg.force)))
+                  for split in own.values()]
         parts += [Part(f"train/{v.name}/seed{seed}", work / "train" / v.name / f"seed{seed}.json",
-                       _train_variant(v, seed, cfg), ("data/train",))
+                       _train_variant(v, seed, cfg), (_split_part(v.train_split) if v.train_split else "data/train",))
                   for seed in r.ablation_seeds for v in TRAINED_VARIANTS]
     parts += [Part(f"ap/{name}", work / "ap" / f"{name}.json", _ap_part(name, r), ("data/test",))
               for name in r.policies]

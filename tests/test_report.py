@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -155,7 +155,8 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     assert rows[0]["name"] == "infer5" and rows[0]["status"] == "not available" and rows[0]["ap"] is None
     trained = {row["name"]: row for row in rows[1:]}
     assert set(trained) == {"reference", "no_segment_levers", "segment_size", "levers_in_encoder", "no_normals",
-                            "no_visibility", "pointnet", "physical_labels", "steps5", "steps10", "steps15"}
+                            "no_visibility", "pointnet", "physical_labels", "points4096_400", "points8192", "steps5",
+                            "steps10", "steps15"}
     assert all(row["status"] == "not trained" and [run["seed"] for run in row["runs"]] == [0, 1, 2]
                for row in trained.values())
     assert trained["no_normals"]["runs"][1]["command"] == (
@@ -167,8 +168,37 @@ def test_missing_ablation_checkpoints_are_listed_with_training_commands(tmp_path
     assert trained["pointnet"]["paper"][0] == 38.39
     assert trained["no_segment_levers"]["runs"][0]["command"].endswith("--no-segment-levers")
     assert trained["no_segment_levers"]["paper"] is None  # not in the paper
+    # the more-points pair trains on its own splits (the same piles at two densities) and is tested on its own
+    assert " --data data/train8k " in trained["points8192"]["runs"][0]["command"]
+    assert trained["points8192"]["runs"][0]["command"].endswith("--seed 0 --num-points 8192")
+    assert " --data data/train4k400 " in trained["points4096_400"]["runs"][0]["command"]
+    assert trained["points8192"]["baseline"] == "points4096_400" and trained["points4096_400"]["baseline"] is None
+    assert trained["points8192"]["test_data"] == trained["points4096_400"]["test_data"] == "data/test8k"
+    assert trained["no_normals"]["baseline"] == "reference" and trained["no_normals"]["test_data"] == str(tmp_path)
     table = ablation_table(rows)
     assert f"`{trained['pointnet']['runs'][2]['command']}`" in table  # every missing run says how to make it
+
+
+def test_a_trained_variant_without_its_own_test_split_says_how_to_make_it(tmp_path: Path, monkeypatch):
+    from policies.diffusion.checkpoint import save_checkpoint
+    from policies.diffusion.config import DiffusionConfig
+    from policies.diffusion.model import build_model
+
+    save_checkpoint(tmp_path / "abl" / "points8192" / "seed0" / "best.pt", build_model(DiffusionConfig.tiny()))
+    config = ReportConfig(test_data=str(tmp_path), diffusion_checkpoint=str(tmp_path / "missing.pt"),
+                          ablation_dir=str(tmp_path / "abl"), ablation_steps=(5,), ablation_seeds=(0,),
+                          progress=False)
+    test = tmp_path / "absent8k"
+    variant = next(v for v in TRAINED_VARIANTS if v.name == "points8192")
+    moved = replace(variant, test_split=replace(variant.test_split, path=str(test)))
+    monkeypatch.setattr("eval.report.orchestration.TRAINED_VARIANTS",
+                        tuple(moved if v is variant else v for v in TRAINED_VARIANTS))
+    rows = {row["name"]: row for row in evaluate_ablations(config)}
+    run = rows["points8192"]["runs"][0]
+    assert run["status"] == "failed" and rows["points8192"]["status"] == "failed"
+    assert f"its test split {test} is missing" in run["reason"]
+    assert f"python -m dataset.generate --out {test} --scenes 64 --split test --seed 1" in run["reason"]
+    assert "--points 8192" in run["reason"]
 
 
 @pytest.mark.parametrize("bad", [dict(policies=()), dict(episodes=0), dict(parcels=0), dict(ap_scenes=0),

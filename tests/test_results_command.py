@@ -163,3 +163,28 @@ def test_list_shows_done_and_todo(tmp_path: Path, capsys):
     listed = capsys.readouterr().out.splitlines()
     # no paper_compat part: neither the label oracle nor Diffusion-Suction is asked for
     assert listed == ["todo  data/test", "todo  ap/random", "todo  clearance/random/mixed-stacked", "todo  ablations"]
+
+
+def test_training_generates_each_variants_own_split_once_before_the_runs_that_read_it(tmp_path: Path):
+    cfg = results.config_from_args(results.build_parser().parse_args(
+        ["--test-data", str(tmp_path / "d"), "--work", str(tmp_path / "w"), "--policies", "random", "--train",
+         "--ablation-seeds", "0", "--skip-benchmarks"]))
+    parts = results.plan(cfg)
+    names = [p.name for p in parts]
+    own = ["data/variants/train4k400", "data/variants/test8k", "data/variants/train8k"]
+    assert [n for n in names if n.startswith("data/")] == ["data/test", "data/train", *own]
+    assert max(names.index(n) for n in own) < min(i for i, n in enumerate(names) if n.startswith("train/"))
+    after = {p.name: p.after for p in parts}
+    assert after["train/points8192/seed0"] == ("data/variants/train8k",)
+    assert after["train/reference/seed0"] == ("data/train",)
+    # forcing the report's test split does not regenerate the variants' (a prefix of 'data/test8k' would)
+    assert not any(results.forced(n, ("data/test",)) for n in own)
+    # the pair's splits are the report's, at another density: the same seeds and piles
+    from eval.report.splits import TEST_MORE_POINTS, TRAIN_MORE_POINTS, TRAIN_MORE_POINTS_BASELINE
+
+    test = list(TEST_MORE_POINTS.generate_args())
+    assert test[test.index("--points") + 1] == "8192"
+    test[test.index("--points") + 1] = "4096"
+    assert tuple(test) == results.TEST_DATA_ARGS
+    assert TRAIN_MORE_POINTS.scenes == TRAIN_MORE_POINTS_BASELINE.scenes
+    assert results.TRAIN_DATA_ARGS == TRAIN_MORE_POINTS_BASELINE.generate_args()

@@ -56,17 +56,31 @@ def test_a_variant_is_ahead_only_when_every_seed_agrees_and_the_scenes_resolve_i
     assert seed_paired_difference({5: reference[0]}, reference) is None  # no seed in common
 
 
-def test_the_comparison_table_reads_each_variant_against_the_reference_of_the_same_seed():
+def test_the_comparison_table_reads_each_variant_against_its_baseline_of_the_same_seed():
     base = np.random.default_rng(1).uniform(20, 60, 30)
 
-    def row(name: str, shifts: list[float]) -> dict:
+    def row(name: str, shifts: list[float], baseline: str | None = "reference", test: str = "data/test") -> dict:
         runs = [{"seed": s, "ap": r} for s, r in _seeds(base, shifts).items()]
-        return {"name": name, "kind": "trained", "description": name, "runs": runs,
-                "ap": seed_mean_ap([r["ap"] for r in runs], [r["seed"] for r in runs])}
+        return {"name": name, "kind": "trained", "description": name, "runs": runs, "baseline": baseline,
+                "test_data": test, "ap": seed_mean_ap([r["ap"] for r in runs], [r["seed"] for r in runs])}
 
-    table = ablation_comparison_table([row("reference", [0.0, 1.0, 2.0]), row("wider", [3.0, 4.0, 5.0]),
-                                       row("noisy", [3.0, -1.0, 2.0])])
+    table = ablation_comparison_table([
+        row("reference", [0.0, 1.0, 2.0], baseline=None), row("wider", [3.0, 4.0, 5.0]),
+        row("noisy", [3.0, -1.0, 2.0]),
+        # a pair on its own split: read against its own baseline, not the reference
+        row("sparse", [10.0, 10.0, 10.0], baseline=None, test="data/test8k"),
+        row("dense", [8.0, 9.0, 7.0], baseline="sparse", test="data/test8k"),
+        # a baseline on another split is not paired scene by scene
+        row("misplaced", [5.0, 5.0, 5.0], baseline="reference", test="data/test8k")])
     lines = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines()[2:]}
-    assert "+3.00 ± 0.00" in lines["wider"] and lines["wider"].endswith("| wider ahead |")
+    assert "| reference | 3 | +3.00 ± 0.00 |" in lines["wider"] and lines["wider"].endswith("| wider ahead |")
     assert "0: +3.00, 1: -2.00, 2: +0.00" in lines["noisy"] and lines["noisy"].endswith(f"| {TIE} |")
-    assert "reference" not in lines
+    assert "| sparse | 3 | -2.00 ± 1.00 |" in lines["dense"] and lines["dense"].endswith("| sparse ahead |")
+    assert "not paired: tested on data/test8k, its baseline on data/test" in lines["misplaced"]
+    assert "reference" not in lines and "sparse" not in lines  # baselines have no row of their own
+    # a row stored before baselines existed is read against the reference
+    old = row("old", [1.0, 2.0, 3.0])
+    del old["baseline"], old["test_data"]
+    reference = row("reference", [0.0, 1.0, 2.0], baseline=None)
+    del reference["test_data"]
+    assert "| old | reference | 3 | +1.00 ± 0.00 |" in ablation_comparison_table([reference, old])

@@ -18,6 +18,7 @@ from eval.report.config import (
     QUALITY_TITLES,
 )
 from eval.report.figures import plot_clearance, plot_failures, plot_precision_at_k
+from eval.report.splits import MORE_POINTS, MORE_POINTS_TRAIN_SCENES
 from eval.report.seed_runs import MIN_SEEDS
 from eval.report.tables import (
     _unavailable,
@@ -146,8 +147,10 @@ def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out
                   "validation top-k precision each run logged (the held-out part of the training data). The paper's "
                   "DGCNN row has no counterpart here.", "",
                   ablation_table(report.get("ablations", [])), "",
-                  "Each trained variant against the reference trained with the same seed, paired over the same test "
-                  "scenes; a variant is called ahead or behind only when the seed-mean difference's interval "
+                  "Each trained variant against its baseline trained with the same seed, paired over the same test "
+                  "scenes: the reference, or for the more-points variant the same settings on the same "
+                  f"{MORE_POINTS_TRAIN_SCENES} piles at the reference's density, both tested on the test piles at "
+                  f"{MORE_POINTS:,} points. A variant is called ahead or behind only when the seed-mean difference's interval "
                   f"excludes 0 and every seed's difference has its sign, over at least {MIN_SEEDS} seeds:", "",
                   ablation_comparison_table(report.get("ablations", [])), ""]
     if report.get("provenance"):

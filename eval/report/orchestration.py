@@ -13,7 +13,7 @@ import sys
 import traceback
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -191,7 +191,8 @@ def ablation_run_dir(variant: TrainedVariant, seed: int, config: ReportConfig) -
 
 
 def train_command(variant: TrainedVariant, config: ReportConfig, seed: int) -> str:
-    return " ".join([".venv/bin/python -m policies.diffusion.train", "--data", config.train_data, "--out",
+    data = config.train_data if variant.train_split is None else variant.train_split.path
+    return " ".join([".venv/bin/python -m policies.diffusion.train", "--data", data, "--out",
                      str(ablation_run_dir(variant, seed, config)), *config.train_args.split(), "--seed", str(seed),
                      *variant.train_flags])
 
@@ -251,16 +252,27 @@ def run_ap(job: tuple[str, ReportConfig]) -> tuple[dict[str, Any] | None, str | 
     return ap, error
 
 
+def variant_config(variant: TrainedVariant, config: ReportConfig) -> ReportConfig:
+    """The report's settings with the variant's own test split, where it has one."""
+    return config if variant.test_split is None else replace(config, test_data=variant.test_split.path)
+
+
 def _trained_runs(variant: TrainedVariant, config: ReportConfig) -> list[dict[str, Any]]:
-    """One entry per seed: its checkpoint, command and best validation figure; ``status`` 'not trained' without a
-    checkpoint, else 'pending' until ``evaluate_ablations`` fills in its AP."""
+    """One entry per seed: its checkpoint, command, test split and best validation figure; ``status`` 'not trained'
+    without a checkpoint, 'failed' when its own test split is missing, else 'pending' until ``evaluate_ablations``
+    fills in its AP."""
+    test = variant_config(variant, config).test_data
+    missing_test = None
+    if variant.test_split is not None and not Path(test).is_dir():
+        missing_test = f"its test split {test} is missing: generate it with `{variant.test_split.command()}`"
     runs = []
     for seed in config.ablation_seeds:
         run_dir = ablation_run_dir(variant, seed, config)
         checkpoint = run_dir / "best.pt"
+        status = "not trained" if not checkpoint.is_file() else "failed" if missing_test else "pending"
         runs.append({"seed": seed, "checkpoint": str(checkpoint), "command": train_command(variant, config, seed),
-                     "val_ap_proxy": best_validation(run_dir), "ap": None, "reason": None,
-                     "status": "pending" if checkpoint.is_file() else "not trained"})
+                     "test_data": test, "val_ap_proxy": best_validation(run_dir), "ap": None,
+                     "reason": missing_test if status == "failed" else None, "status": status})
     return runs
 
 
@@ -295,7 +307,8 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
     step_free = base is not None and base.config.map_loss_weight == 0
     for variant in TRAINED_VARIANTS:
         row = {"name": variant.name, "kind": "trained", "description": variant.description,
-               "paper": list(variant.paper) if variant.paper else None, "ap": None, "reason": None, "runs": []}
+               "paper": list(variant.paper) if variant.paper else None, "ap": None, "reason": None, "runs": [],
+               "baseline": variant.baseline, "test_data": variant_config(variant, config).test_data}
         if variant.steps is not None and step_free and variant.steps in sampled:
             row.update(kind="same_as_inference", checkpoint=sampled[variant.steps]["checkpoint"], command=None,
                        ap=sampled[variant.steps]["ap"], status="ok",
@@ -306,7 +319,8 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
         row["runs"] = _trained_runs(variant, config)
         rows.append(row)
     pending = [run for row in rows for run in row.get("runs", []) if run["status"] == "pending"]
-    results = parallel_map(run_ap, [(run["checkpoint"], config) for run in pending], workers=config.workers,
+    jobs = [(run["checkpoint"], replace(config, test_data=run["test_data"])) for run in pending]
+    results = parallel_map(run_ap, jobs, workers=config.workers,
                            backend=config.backend, ray_address=config.ray_address, desc="ablation AP",
                            progress=config.progress)
     for run, (ap, error) in zip(pending, results):

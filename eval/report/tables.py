@@ -308,26 +308,35 @@ def comparison_table(rows: list[dict[str, Any]], policies: dict[str, dict[str, A
 
 
 def ablation_comparison_table(rows: list[dict[str, Any]]) -> str:
-    """Each measured trained variant against the 'reference' trained with the same seeds, paired over the same
-    test scenes (``seed_runs.seed_paired_difference``); the verdict needs every seed to agree."""
+    """Each measured trained variant against its baseline (the 'reference', or for a variant with its own data the
+    variant trained on the same piles at the reference's density), trained with the same seeds and paired over the
+    same test scenes (``seed_runs.seed_paired_difference``); the verdict needs every seed to agree."""
     by_name = {row["name"]: row for row in rows}
-    reference = {run["seed"]: run["ap"] for run in by_name.get(REFERENCE, {}).get("runs", []) if run["ap"]}
-    if not reference:
-        return "No 'reference' variant was measured, so no variant can be compared with it."
-    lines = ["| variant | seeds | Top-50 AP diff vs reference: mean ± std over seeds | seed-mean diff [95% over "
-             "scenes] | per seed | verdict |", "|---|---|---|---|---|---|"]
+    lines = ["| variant | read against | seeds | Top-50 AP diff: mean ± std over seeds | seed-mean diff [95% over "
+             "scenes] | per seed | verdict |", "|---|---|---|---|---|---|---|"]
     for row in rows:
-        if row["kind"] != "trained" or row["name"] == REFERENCE or row.get("ap") is None:
+        name = row.get("baseline", REFERENCE)  # rows stored before baselines existed: the reference
+        if row["kind"] != "trained" or name in (None, row["name"]) or row.get("ap") is None:
             continue
-        diff = seed_paired_difference({run["seed"]: run["ap"] for run in row["runs"] if run["ap"]}, reference)
+        base = by_name.get(name, {})
+        baseline = {run["seed"]: run["ap"] for run in base.get("runs", []) if run["ap"]}
+        label = name  # the baseline by its short name: its description is in the table above
+        if not baseline:
+            lines.append(f"| {row['description']} | {label} | 0 | – | – | – | its baseline '{name}' was not measured |")
+            continue
+        if base.get("test_data") != row.get("test_data"):  # scene k of one split is not scene k of the other
+            lines.append(f"| {row['description']} | {label} | 0 | – | – | – | not paired: tested on "
+                         f"{row.get('test_data')}, its baseline on {base.get('test_data')} |")
+            continue
+        diff = seed_paired_difference({run["seed"]: run["ap"] for run in row["runs"] if run["ap"]}, baseline)
         if diff is None:
-            lines.append(f"| {row['description']} | 0 | – | – | – | no seed shared with the reference |")
+            lines.append(f"| {row['description']} | {label} | 0 | – | – | – | no seed shared with its baseline |")
             continue
         per_seed = ", ".join(f"{seed}: {d['estimate']:+.2f}" for seed, d in diff["per_seed"].items())
         spread = "" if diff["std"] is None else f" ± {diff['std']:.2f}"
-        lines.append(f"| {row['description']} | {len(diff['seeds'])} | {diff['mean']:+.2f}{spread} | "
+        lines.append(f"| {row['description']} | {label} | {len(diff['seeds'])} | {diff['mean']:+.2f}{spread} | "
                      f"{format_interval(diff['pooled'])} | {per_seed} | "
-                     f"{seed_verdict(diff, row['description'], REFERENCE)} |")
+                     f"{seed_verdict(diff, row['description'], label)} |")
     return "\n".join(lines)
 
 

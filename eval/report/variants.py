@@ -3,7 +3,8 @@
 Each ablation is the same training command with one flag added, so a variant changes one thing only and is
 read against the 'reference' variant (the same budget, no flag), not the longer-trained shipped model. Every
 variant is trained once per seed in ``ABLATION_SEEDS`` (runs/ablations/<name>/seed<k>/best.pt), and read against the
-reference trained with the same seed.
+reference trained with the same seed. A variant that changes the data (more points per scene) trains and is tested on
+splits of its own, and is read against a baseline variant trained on the same piles at the reference's density.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from eval.paper_results import TABLE_III_ABLATION, TABLE_IV_STEPS
+from eval.report.splits import MORE_POINTS, TEST_MORE_POINTS, TRAIN_MORE_POINTS, TRAIN_MORE_POINTS_BASELINE, DataSplit
 
 
 def train_args(steps: int, seed: int | None = 0) -> str:
@@ -39,6 +41,9 @@ class TrainedVariant:
     train_flags: tuple[str, ...]
     paper: tuple[float, ...] | None  # (AP, AP0.8, AP0.4[, ms]) from the paper's Table III / IV
     steps: int | None = None  # the DDIM step count a step-count variant trains and samples with
+    train_split: DataSplit | None = None  # its own training data (None: the report's)
+    test_split: DataSplit | None = None  # its own test data (None: the report's)
+    baseline: str | None = REFERENCE  # the variant it is read against, on the same test split; None: none
 
 
 TRAINED_VARIANTS: tuple[TrainedVariant, ...] = (
@@ -54,6 +59,12 @@ TRAINED_VARIANTS: tuple[TrainedVariant, ...] = (
     TrainedVariant("pointnet", "PointNet encoder", ("--encoder", "pointnet"), TABLE_III_ABLATION["pointnet"]),
     TrainedVariant("physical_labels", "trained on the physical labels (not in the paper)",
                    ("--label-set", "physical"), None),
+    TrainedVariant("points4096_400", f"4,096 points, {TRAIN_MORE_POINTS.scenes} scenes (the more-points baseline; "
+                   f"tested at {MORE_POINTS:,})", (), None, train_split=TRAIN_MORE_POINTS_BASELINE,
+                   test_split=TEST_MORE_POINTS, baseline=None),
+    TrainedVariant("points8192", f"with {MORE_POINTS:,} points, the same {TRAIN_MORE_POINTS.scenes} scenes (not in "
+                   f"the paper; tested at {MORE_POINTS:,})", ("--num-points", str(MORE_POINTS)), None,
+                   train_split=TRAIN_MORE_POINTS, test_split=TEST_MORE_POINTS, baseline="points4096_400"),
     *(TrainedVariant(f"steps{k}", f"trained and sampled with {k} DDIM steps", ("--inference-steps", str(k)),
                      TABLE_IV_STEPS[(k, k)], steps=k) for k in (5, 10, 15)),
 )
