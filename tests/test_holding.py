@@ -19,8 +19,8 @@ from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.envs.config import ENV_CUP_RADIUS, GraspConfig
 from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
 from parcelpick_env.envs.grasp import CONDITIONS, LINE_STEP, MOVES
-from parcelpick_env.robot.arm import MAX_IK_JUMP
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+from parcelpick_env.robot.arm import MAX_IK_JUMP
 from parcelpick_env.suction.cup import CupSpec, ToolState, contact_forces, cup_wrench, mesh_inertia
 
 SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256)

@@ -59,7 +59,8 @@ TRAINED_VARIANTS: tuple[TrainedVariant, ...] = (
     TrainedVariant("pointnet", "PointNet encoder", ("--encoder", "pointnet"), TABLE_III_ABLATION["pointnet"]),
     TrainedVariant("physical_labels", "trained on the physical labels (not in the paper)",
                    ("--label-set", "physical"), None),
-    TrainedVariant("points4096_400", f"4,096 points, {TRAIN_MORE_POINTS.scenes} scenes (the more-points baseline; "
+    TrainedVariant("points4096_400", f"{TRAIN_MORE_POINTS_BASELINE.points:,} points, {TRAIN_MORE_POINTS.scenes} "
+                   "scenes (the more-points baseline; "
                    f"tested at {MORE_POINTS:,})", (), None, train_split=TRAIN_MORE_POINTS_BASELINE,
                    test_split=TEST_MORE_POINTS, baseline=None),
     TrainedVariant("points8192", f"with {MORE_POINTS:,} points, the same {TRAIN_MORE_POINTS.scenes} scenes (not in "
