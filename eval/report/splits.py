@@ -51,8 +51,9 @@ def with_points(args: Sequence[str], points: int) -> tuple[str, ...]:
     return tuple(out)
 
 
-# The more-points pair (issue 14): 400 training scenes, what 2 cores generate at 8,192 points in 16 min and train
-# on in 14 min per seed; its 4,096-point side is the same 400 piles, so the pair differs in the point count alone.
+# The more-points pair (issue 14): 400 training scenes, which 2 cores generate at 8,192 points in 16 min (a 1,000-step
+# run on them took 20-24 min of one core); its 4,096-point side is the same 400 piles, so the pair differs in the
+# point count alone.
 # Both are tested on the test split's piles at 8,192 points (a 4,096-point model samples its own 4,096 of them).
 MORE_POINTS = 8192
 MORE_POINTS_TRAIN_SCENES = 400

@@ -54,6 +54,7 @@ OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", 
                              "invalid_action")
 MOVES: tuple[str, ...] = ("plan", "hover", "descend", "approach", "seal", "lift", "transport", "release",
                           "retreat")
+HOVER_RISE = 1e-3  # m: a hover less than this above the pre-grasp point is the pre-grasp point (no descent)
 FINE_STEPS = 4  # a line whose IK jumps is solved again this many times finer (``_line``)
 LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump branches near the drop zone)
 LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
@@ -375,7 +376,7 @@ class PickExecutor:
         # than the planner's margin but not touching stays acceptable, as the planner accepts it
         pick.q_hover = arm.ik(hover, axis, seed=self.ready_q,
                               valid=lambda q: self.planner.collision(q, margin=0.0) is None)
-        high = hover[2] > pre[2] + 1e-3
+        high = hover[2] > pre[2] + HOVER_RISE
         why = None
         if pick.q_hover is not None and high:
             pick.descend, why = self._line(pick.q_hover, pre, axis, g.control_dt_free, g.carry_speed)
@@ -384,7 +385,7 @@ class PickExecutor:
             # mid-line): solve at the pre-grasp point and climb the line instead, as high as the arm reaches
             climbed = self._climb(pre, hover, axis)
             if climbed is not None:
-                if float(self.kin.forward(climbed)[0][2]) <= pre[2] + 1e-3:  # no higher: hover at the pre-grasp
+                if float(self.kin.forward(climbed)[0][2]) <= pre[2] + HOVER_RISE:  # no higher: hover at pre-grasp
                     pick.q_hover, high = climbed, False
                 else:
                     descend, why_climbed = self._line(climbed, pre, axis, g.control_dt_free, g.carry_speed)
