@@ -375,31 +375,81 @@ def test_parcel_that_cannot_be_carried_on_is_set_back_down():
         env.close()
 
 
-def test_cup_loads_leave_out_supports_and_walls_only_while_the_parcel_bears_on_them():
-    """A slanted support pushes the parcel into a wall: while it bears, both are the (indeterminate) support
-    and neither loads the cup; a neighbour lying on top always does; off the support, the wall counts."""
+def test_cup_loads_leave_out_supports_and_sideways_pushes_only_while_the_parcel_bears_on_them():
+    """A slanted support pushes the parcel into a wall and a neighbour leans on its side: while it bears,
+    all three are the (indeterminate) support and none loads the cup; a parcel lying on top, and a body
+    struck in the lift (not touched at attachment), always do; off the support, the wall and the leaning
+    neighbour count too."""
     from parcelpick_env.envs.grasp import cup_loads
     from parcelpick_env.suction.cup import Contacts
 
-    support, wall, neighbour = 5, 0, 7
-    normals = np.array([[0.0, -0.34, 0.94], [0.0, 1.0, 0.0], [0.3, 0.0, -0.95]])
-    force = np.array([5.0, 1.8, 2.0])
+    support, wall, leaning, on_top, struck = 5, 0, 6, 7, 8
+    bodies = np.array([support, wall, leaning, on_top, struck])
+    normals = np.array([[0.0, -0.34, 0.94], [0.0, 1.0, 0.0], [0.69, 0.71, -0.13], [0.3, 0.0, -0.95],
+                        [-1.0, 0.0, 0.0]])
+    force = np.array([5.0, 1.8, 1.5, 2.0, 0.5])
 
     def contacts(rows):
-        return Contacts(np.zeros((len(rows), 3)), normals[rows] * force[rows, None],
-                        np.array([support, wall, neighbour])[rows], normals[rows], force[rows])
+        return Contacts(np.zeros((len(rows), 3)), normals[rows] * force[rows, None], bodies[rows], normals[rows],
+                        force[rows])
 
-    exempt, walls = {support, wall, neighbour}, {wall}
-    resting = cup_loads(contacts([0, 1, 2]), exempt, walls)
-    assert list(resting.bodies) == [neighbour]
-    off = cup_loads(contacts([1, 2]), exempt, walls)  # the support is left behind: the wall's push is a load
-    assert sorted(off.bodies) == [wall, neighbour]
-    np.testing.assert_allclose(off.forces.sum(axis=0), normals[1] * 1.8 + normals[2] * 2.0)
+    exempt = {support, wall, leaning, on_top}
+    resting = cup_loads(contacts([0, 1, 2, 3, 4]), exempt)
+    assert sorted(resting.bodies) == [on_top, struck]
+    off = cup_loads(contacts([1, 2, 3, 4]), exempt)  # the support is left behind: every push is a load
+    assert sorted(off.bodies) == [wall, leaning, on_top, struck]
+    np.testing.assert_allclose(off.forces.sum(axis=0), (normals[1:] * force[1:, None]).sum(axis=0))
+
+
+def test_away_from_all_bisects_the_narrowest_arc_of_the_normals_and_refuses_a_wedge():
+    """One wall: straight off it; a corner: along the diagonal; a wall and a neighbour 137 deg apart: the
+    bisector, off both by the same cosine; opposite walls or three normals spanning more than half a turn
+    (a wedged parcel): no direction; no contact: none."""
+    from parcelpick_env.envs.grasp import away_from_all
+
+    np.testing.assert_allclose(away_from_all(np.array([[0.0, -1.0]])), [0.0, -1.0], atol=1e-12)
+    np.testing.assert_allclose(away_from_all(np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])),
+                               [math.sqrt(0.5), math.sqrt(0.5)], atol=1e-12)
+    normals = np.array([[0.0, -1.0], [0.68, 0.73]]) / np.array([[1.0], [math.hypot(0.68, 0.73)]])
+    d = away_from_all(normals)
+    assert d is not None
+    cos = normals @ d
+    np.testing.assert_allclose(cos[0], cos[1], atol=1e-12)
+    assert cos.min() > 0.3
+    assert away_from_all(np.array([[0.0, 1.0], [0.0, -1.0]])) is None
+    assert away_from_all(np.array([[0.0, 1.0], [0.74, -0.66], [-0.17, -0.82]])) is None
+    assert away_from_all(np.zeros((0, 2))) is None
+
+
+def test_break_away_leaves_a_neighbour_as_well_as_the_wall():
+    """A parcel pressed by a bin wall on one side and a neighbour on the other (the contact normals of a
+    cylindrical stacked lift that dropped on torsion): the break-away moves off both; a move off the wall
+    alone went into the neighbour (its push grew from 0.5 N to 2.8 N over 4 mm of rise). Floor and load
+    contacts (steep normals) do not steer it."""
+    from parcelpick_env.suction.cup import Contacts
+
+    env = make(HEAVY)
+    try:
+        env.reset(seed=0)
+        normals = np.array([[0.0, -1.0, 0.0], [0.68, 0.73, -0.06], [0.0, 0.0, 1.0], [0.3, 0.0, -0.95]])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        touching = Contacts(np.zeros((4, 3)), normals, np.array([0, 6, 0, 9]), normals, np.ones(4))
+        relief = env.executor._break_away(touching)
+        assert relief is not None
+        np.testing.assert_allclose(np.linalg.norm(relief), env.config.grasp.break_away, rtol=1e-9)
+        assert relief[2] == 0.0
+        assert normals[0] @ relief > 0.0 and normals[1] @ relief > 0.0  # off the wall and off the neighbour
+        assert normals[1] @ np.array([0.0, -1.0, 0.0]) < 0.0  # straight off the wall is into the neighbour
+        wedged = Contacts(np.zeros((2, 3)), normals[:2], np.array([0, 6]), np.array([[0.0, -1.0, 0.0], [0.0, 1.0, 0.0]]),
+                          np.ones(2))
+        assert env.executor._break_away(wedged) is None
+    finally:
+        env.close()
 
 
 def test_carton_pressed_into_a_wall_is_lifted_off_it_with_its_own_load_only():
     """A 1 kg carton slid down a 20 deg ramp against the far wall (the wall pushes it several newtons): the
-    lift first moves it wall_relief off the wall, and the ring loads are its own weight's, within 30% of the
+    lift first moves it break_away off the wall, and the ring loads are its own weight's, within 30% of the
     hand values (the wall's 7 N, 5-8 cm below the lip, charged to the cup would add about 0.6 to friction and
     0.8 to material)."""
     th = math.radians(20.0)
@@ -413,8 +463,8 @@ def test_carton_pressed_into_a_wall_is_lifted_off_it_with_its_own_load_only():
         touching = contact_forces(env.sim.client, ps.body_id, {env.arm.body})
         bin_body = int(touching.bodies[np.argmin(np.abs(touching.normals[:, 2]))])
         assert touching.normal_force[touching.bodies == bin_body].sum() > 3.0  # pressed into the wall
-        relief = env.executor._wall_relief(touching)
-        np.testing.assert_allclose(relief, [0.0, -env.config.grasp.wall_relief, 0.0], atol=1e-9)
+        relief = env.executor._break_away(touching)
+        np.testing.assert_allclose(relief, [0.0, -env.config.grasp.break_away, 0.0], atol=1e-9)
         res = top_pick(env)
         assert res.outcome == "success", res.failure
         R = np.asarray(pb.getMatrixFromQuaternion(ps.orientation.tolist())).reshape(3, 3)

@@ -52,10 +52,11 @@ class GraspConfig:
     touch_force: float = 1.0  # N of cup contact that ends the guarded approach (the lip is on the surface)
     clearance: float = 0.05  # m the carried parcel's underside keeps above the pile top and the bin rim
     min_lift: float = 0.05  # m the lift rises at least
-    # m: at the lift's start the tool moves the parcel this far off the bin walls it touches, while rising
-    # wall_relief_rise (a real bellows' sideways give; the simulated attachment is rigid: grasp._wall_relief)
-    wall_relief: float = 0.003
-    wall_relief_rise: float = 0.01
+    # m: at the lift's start the tool moves the parcel this far off the walls and neighbours pressing it
+    # sideways, while rising break_away_rise (a real bellows' sideways give; the simulated attachment is
+    # rigid: grasp.PickExecutor._break_away)
+    break_away: float = 0.003
+    break_away_rise: float = 0.01
     hover_clearance: float = 0.05  # m above the highest obstacle near the pick for the hover point
     hover_corridor: float = 0.08  # m: obstacles whose footprint comes this close to the pick set the hover height
     ready_height: float = 0.60  # m above the bin floor: the cup above the bin centre, seeds IK
@@ -73,8 +74,8 @@ class GraspConfig:
         require_positive_numbers(self, ("pregrasp_distance", "overshoot", "approach_speed", "touch_force", "clearance",
                                         "hover_clearance", "hover_corridor", "control_dt_free", "trace_interval",
                                         "seal_dwell", "carry_dt", "lift_dt", "ready_height", "carry_load_target",
-                                        "min_carry_acceleration", "carry_speed", "min_lift", "wall_relief",
-                                        "wall_relief_rise"))
+                                        "min_carry_acceleration", "carry_speed", "min_lift", "break_away",
+                                        "break_away_rise"))
         require(self.carry_dt <= 0.05, "GraspConfig", f"carry_dt must be <= 0.05 s, got {self.carry_dt}")
         require(self.lift_dt <= 0.05, "GraspConfig", f"lift_dt must be <= 0.05 s, got {self.lift_dt}")
         require(self.carry_load_target < 1.0, "GraspConfig",

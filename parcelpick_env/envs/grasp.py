@@ -18,7 +18,7 @@ Each move returns a ``MoveReport``; the first that fails ends the attempt with a
   physical wrench (Newton-Euler of the held parcel plus its real contacts, ``suction.cup``) is checked
   against Dex-Net 3.0's ring conditions: a sustained violation is ``dropped`` (condition named); a
   held parcel pressing on a wall or another parcel is ``collision`` (that body named). A parcel touching
-  a bin wall is first moved a few millimetres off it (``_wall_relief``); a tilted pick whose transport no
+  a wall or neighbour sideways is first moved a few millimetres off it (``_break_away``); a tilted pick whose transport no
   IK solves at its contact axis is turned down about the lip first (``_turn_down``).
 - ``release``: at the drop zone the parcel is released and leaves the scene (``success``).
 - ``retreat``: back to home (it never changes the outcome).
@@ -58,7 +58,9 @@ HOVER_RISE = 1e-3  # m: a hover less than this above the pre-grasp point is the 
 FINE_STEPS = 4  # a line whose IK jumps is solved again this many times finer (``_line``)
 LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump branches near the drop zone)
 LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
-WALL_NORMAL_Z = 0.5  # a static contact whose normal is within 60 deg of horizontal is a wall (else floor)
+SIDEWAYS_NORMAL_Z = 0.5  # a contact whose normal is within 60 deg of horizontal presses sideways (else bears or loads)
+# the break-away leaves every sideways contact at least this cosine (80 deg) off its normal, or is not made
+MIN_BREAK_AWAY_COS = math.cos(math.radians(80.0))
 TURN_STEP = math.radians(3.0)  # rad between IK points when the tool is turned down about the lip
 
 _T = TypeVar("_T")
@@ -72,13 +74,34 @@ def _required(value: _T | None, what: str) -> _T:
     return value
 
 
-def cup_loads(contacts: Contacts, exempt: set[int], walls: set[int]) -> Contacts:
+def cup_loads(contacts: Contacts, exempt: set[int]) -> Contacts:
     """The contacts on a held parcel that load the cup (``PickExecutor._carry_step``): all but the exempt
-    bodies' bearing ones (pushing up from below), and, while any of those still bears, all but the static
-    ``walls``' pushes too (a wall only reacts, to the sideways part of the support's push)."""
+    bodies' bearing ones (pushing up from below), and, while any of those still bears, all but the exempt
+    bodies' sideways pushes too (``SIDEWAYS_NORMAL_Z``): the supports' friction reacts them, as it did at
+    rest. Pushes from above (a parcel lying on it) always load the cup, as its own weight does."""
     bearing = contacts.bearing(exempt) & (contacts.normal_force > 0.0)
-    reacting = np.isin(contacts.bodies, sorted(walls)) & bool(np.any(bearing))
-    return contacts.without(~(bearing | reacting))
+    sideways = (np.isin(contacts.bodies, sorted(exempt)) & (np.abs(contacts.normals[:, 2]) < SIDEWAYS_NORMAL_Z)
+                & bool(np.any(bearing)))
+    return contacts.without(~(bearing | sideways))
+
+
+def away_from_all(normals: np.ndarray, min_cos: float = MIN_BREAK_AWAY_COS) -> np.ndarray | None:
+    """The unit 2-D direction that moves a body most directly off all the contacts whose horizontal
+    normals (``(k, 2)``, pointing into the body) are given: the bisector of the narrowest arc holding
+    every normal, which maximises the smallest cosine to any of them. None when there are none, or
+    when that cosine is below ``min_cos`` (the normals span half a turn or more: the body is wedged)."""
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 2)
+    normals = normals[np.linalg.norm(normals, axis=1) > 1e-9]
+    if len(normals) == 0:
+        return None
+    angle = np.sort(np.arctan2(normals[:, 1], normals[:, 0]))
+    gaps = np.diff(np.append(angle, angle[0] + 2.0 * np.pi))
+    widest = int(np.argmax(gaps))  # the arc holding every normal starts after the widest empty gap
+    half = (2.0 * np.pi - gaps[widest]) / 2.0
+    if math.cos(half) < min_cos:
+        return None
+    centre = angle[(widest + 1) % len(angle)] + half
+    return np.array([math.cos(centre), math.sin(centre)])
 
 
 @dataclass(frozen=True)
@@ -163,7 +186,7 @@ class _Pick:
     cid: int | None = None
     monitor: HoldMonitor | None = None
     supports: set[int] = field(default_factory=set)  # bodies touching the parcel when it was attached
-    relief: np.ndarray | None = None  # horizontal move off the bin walls it touched, at the lift's start
+    relief: np.ndarray | None = None  # horizontal move off the bodies pressing it sideways, at the lift's start
     x_axis: np.ndarray | None = None  # the cup's yaw, kept while carrying
     carry_axis: np.ndarray | None = None  # the tool axis while carrying: the contact axis, or straight down once turned
     com_in_tool: np.ndarray | None = None  # the held parcel's COM in the tool frame, as attached
@@ -520,7 +543,7 @@ class PickExecutor:
         # before the filter change below, which drops the body's contact manifolds until the next step
         touching = contact_forces(c, body, {arm.body})
         pick.supports = {int(b) for b in touching.bodies}
-        pick.relief = self._wall_relief(touching)
+        pick.relief = self._break_away(touching)
         tip, orn = arm.tip_pose()
         bpos, born = p.getBasePositionAndOrientation(body, physicsClientId=c)  # COM frame
         inv_p, inv_o = p.invertTransform(bpos, born)
@@ -572,16 +595,16 @@ class PickExecutor:
         The cup's wrench counts every contact but the exempt bodies' bearing ones (pushing up from
         below): while the parcel still rests there, how the load splits between the cup and its
         support is statically indeterminate, so the cup is taken to carry it all. For as long as it
-        still bears on them, the exempt static walls' pushes are left out as well: a wall only reacts,
-        here to the sideways part of a slanted support's push (a tube resting on a neighbour's flank
-        is pressed into the corner, and the walls push back 1-3 N); dropping the support's push but
-        keeping the walls' reaction charged the cup with a sideways load that nothing exerts (torsion
-        drops at the first millimetre of the lift). Once the parcel is off its supports, wall contacts
-        count in full. A ring condition
+        still bears on them, the exempt bodies' sideways pushes (walls and neighbours that pressed it
+        at rest) are left out as well (``cup_loads``): at rest the supports' friction reacted them, and
+        dropping the supports' reaction but keeping those pushes charged the cup with a load that
+        nothing exerts. Walls did so at 1-3 N (a tube resting on a neighbour's flank is pressed into
+        the corner; torsion drops at the first millimetre of the lift), and so did leaning neighbours
+        (a torsion ratio of 3 at the first step of a lift, before the tool had moved). Once the parcel
+        is off its supports, every contact counts in full. A ring condition
         violated for ``CupSpec.violation_time`` in a row (steps of ``dt``) breaks the seal: dropped.
         """
         strike, client, body = self.arm.config.collision_force, self.sim.client, pick.held.body_id
-        walls = {b for b in exempt if self._is_static(b)}
         monitor = _required(pick.monitor, "the hold monitor (set when the parcel is attached)")
 
         def check() -> tuple[str, Failure] | None:
@@ -591,7 +614,7 @@ class PickExecutor:
                 contacts.bodies[np.flatnonzero(foreign)[np.argmax(contacts.normal_force[foreign])]])
             if np.any(foreign & (contacts.normal_force > strike)):
                 return "collision", Failure(move, "held parcel", body=hardest)
-            loads = cup_loads(contacts, exempt, walls)
+            loads = cup_loads(contacts, exempt)
             # pose and velocity measured, acceleration as commanded (the executed trajectory's)
             qdd = _required(self.arm.command, "the arm's servoed command (set by Gen3Arm.execute)")[2]
             tool = ToolState(*self.kin.tool_motion(self.arm.q, self.arm.qd, qdd))
@@ -746,26 +769,25 @@ class PickExecutor:
         """A body of zero mass (the bin, a fixture): it only reacts, never pushes."""
         return p.getDynamicsInfo(int(body), -1, physicsClientId=self.sim.client)[0] == 0.0
 
-    def _wall_relief(self, touching: Contacts) -> np.ndarray | None:
-        """The horizontal tip offset that takes the parcel off the static walls it touches at attachment
-        (``GraspConfig.wall_relief`` along the sum of their distinct horizontal contact normals, which point
-        into the parcel), or None when it touches none or is wedged between opposite ones.
+    def _break_away(self, touching: Contacts) -> np.ndarray | None:
+        """The horizontal tip offset that takes the parcel off every body pressing it sideways at
+        attachment, walls and neighbours alike (``GraspConfig.break_away`` along the direction farthest
+        from all their horizontal contact normals, which point into the parcel: ``away_from_all``), or
+        None when it touches none sideways or they surround it (no direction leaves every one).
 
-        The pile presses a parcel against the bin wall; once it is lifted nothing does, and a real bellows
-        cup, compliant sideways by millimetres, lets it relax off the wall. The simulated attachment is
-        rigid: the arm's tracking drift of 0.1-0.8 mm under load then presses the parcel into the rigid wall
-        at 2-4 N for the whole lift, a few centimetres off the cup axis (torsion drops measured on stacked
-        piles, with the wall the only body pushing). The tool makes that relief move itself."""
-        static = np.array([self._is_static(int(b)) for b in touching.bodies], dtype=bool)
-        walls = static & (np.abs(touching.normals[:, 2]) < WALL_NORMAL_Z) if len(touching.bodies) else static
-        if not np.any(walls):
+        The pile presses a parcel against the walls and its neighbours; once it is lifted nothing does,
+        and a real bellows cup, compliant sideways by millimetres, lets it relax off them. The simulated
+        attachment is rigid: the arm's tracking drift of 0.1-0.8 mm under load then presses the parcel
+        into a rigid wall at 2-4 N for the whole lift, a few centimetres off the cup axis (torsion drops
+        measured on stacked piles, with the wall the only body pushing). A move off the walls alone drove
+        it into a neighbour on the other side instead (0.5 N growing to 2.8 N over 4 mm of rise, 10 cm off
+        the axis: the torsion drops of the cylindrical and mixed stacked grid). The tool makes the relief
+        move itself."""
+        lateral = np.abs(touching.normals[:, 2]) < SIDEWAYS_NORMAL_Z if len(touching.bodies) else np.zeros(0, bool)
+        direction = away_from_all(touching.normals[lateral, :2])
+        if direction is None:
             return None
-        flat = touching.normals[walls, :2] / np.linalg.norm(touching.normals[walls, :2], axis=1, keepdims=True)
-        direction = np.unique(np.round(flat, 1), axis=0).sum(axis=0)  # one vote per wall, not per contact point
-        size = float(np.linalg.norm(direction))
-        if size < 0.5:  # opposite walls: no way off both
-            return None
-        return np.array([*(self.grasp.wall_relief * direction / size), 0.0])
+        return np.array([*(self.grasp.break_away * direction), 0.0])
 
     def _lift_height(self, scene: Scene, pick: _Pick) -> float:
         """Tip height for carrying: the pile top (every other parcel and fixture) or the rim, whichever
@@ -786,8 +808,8 @@ class PickExecutor:
         top = np.array([tip[0], tip[1], max(self._lift_height(scene, pick), tip[2] + self.grasp.min_lift)])
         if pick.relief is None:
             return self._carry(scene, pick, "lift", top, pick.supports)
-        # break away: off the walls while rising the first wall_relief_rise, then straight up
-        via = tip + pick.relief + np.array([0.0, 0.0, min(self.grasp.wall_relief_rise, top[2] - tip[2])])
+        # break away: off what presses it sideways while rising the first break_away_rise, then straight up
+        via = tip + pick.relief + np.array([0.0, 0.0, min(self.grasp.break_away_rise, top[2] - tip[2])])
         return self._carry(scene, pick, "lift", top + pick.relief, pick.supports, via)
 
     def _set_down(self, pick: _Pick) -> None:
