@@ -765,10 +765,6 @@ class PickExecutor:
             q = leg.q[-1]
         return concatenate(legs), None
 
-    def _is_static(self, body: int) -> bool:
-        """A body of zero mass (the bin, a fixture): it only reacts, never pushes."""
-        return p.getDynamicsInfo(int(body), -1, physicsClientId=self.sim.client)[0] == 0.0
-
     def _break_away(self, touching: Contacts) -> np.ndarray | None:
         """The horizontal tip offset that takes the parcel off every body pressing it sideways at
         attachment, walls and neighbours alike (``GraspConfig.break_away`` along the direction farthest
