@@ -11,9 +11,14 @@ per policy and cell, the ablations, one benchmark script each); a finished part 
 ``--work`` atomically, and a re-run skips every part whose JSON exists, so an interrupted run redoes only
 what was unfinished. ``--force PREFIX`` redoes the parts whose names start with it.
 
+``--restore RESULTS.json`` seeds the unfinished parts that do not depend on the pick cell (the test data, AP,
+the paper-compatible rows, the ablations) from an earlier report's JSON, so that a change to the cell re-runs
+only the clearance; the report names every restored part and where it came from.
+
     python -m eval.results                       # everything, 2 local workers
     python -m eval.results --backend ray --workers 32 --ray-address auto
     python -m eval.results --list                # the parts and which are done
+    python -m eval.results --restore results/RESULTS.json --force clearance   # the cell changed: clearance only
 """
 
 from __future__ import annotations
@@ -56,10 +61,13 @@ class ResultsConfig:
     benchmarks: bool = True
     bench_dir: str = "benchmarks"
     force: tuple[str, ...] = ()
+    restore: str | None = None  # an earlier report's JSON: its cell-independent parts seed the unfinished ones
 
     def __post_init__(self) -> None:
         if self.test_scenes < 1 or self.train_scenes < 1:
             raise ValueError(f"test_scenes and train_scenes must be >= 1, got {self.test_scenes}, {self.train_scenes}")
+        if self.restore is not None:
+            load_restore_source(self.restore, self.report)  # refused at once, before any part runs
 
 
 @dataclass(frozen=True)
@@ -206,6 +214,66 @@ def _value(path: Path) -> Any:
     return read_json(path)["value"] if path.is_file() else None
 
 
+# The parts whose results do not depend on the pick cell (grasp execution, motion, holding physics): a report's
+# JSON holds all of them, so --restore can seed them. Clearance and the benchmarks are never restored.
+RESTORABLE = ("data/test", "ap/", "paper_compat", "ablations")
+# The report settings that the restorable parts were measured under: a source that differs is refused.
+RESTORE_MUST_MATCH = ("test_data", "ap_scenes", "ap_qualities", "ablation_steps", "ablation_seeds")
+
+
+def _restored_value(name: str, source: dict[str, Any]) -> tuple[bool, Any]:
+    """(found, the part's value) rebuilt from a report JSON; ``found`` is False where the source lacks it."""
+    if name == "data/test":
+        return True, {"argv": None, "manifest_sha256": None}  # not generated here: the AP parts were measured on it
+    if name.startswith("ap/"):
+        entry = source["policies"].get(name.split("/", 1)[1])
+        return entry is not None, None if entry is None else {**entry, "clearance": None, "clearance_error": None}
+    rows = source.get(name)
+    return bool(rows), rows
+
+
+def load_restore_source(source_path: str, config: ReportConfig) -> dict[str, Any]:
+    """The report JSON at ``source_path``, or one ValueError naming it: unreadable, not a report, or measured
+    with other test scenes or AP settings than ``config`` (``RESTORE_MUST_MATCH``)."""
+    source = orchestration.load_report_json(source_path, "--restore")
+    theirs, ours = source.get("config", {}), json.loads(json.dumps(asdict(config)))  # tuples as the JSON has them
+    differ = [k for k in RESTORE_MUST_MATCH if k in theirs and theirs[k] != ours[k]]
+    if differ:
+        raise ValueError(f"--restore {source_path}: measured with other settings ("
+                         + ", ".join(f"{k} {theirs[k]!r}, not {ours[k]!r}" for k in differ) + ")")
+    return source
+
+
+def restore_parts(parts: Sequence[Part], source_path: str, config: ReportConfig,
+                  log: Callable[[str], None] = print) -> list[str]:
+    """Seed each unfinished restorable part from the report JSON at ``source_path``; the names restored.
+
+    Each restored part's JSON says where it came from (``restored_from``), so the report can say so too."""
+    source = load_restore_source(source_path, config)
+    origin = {"path": source_path, "generated": source.get("generated")}
+    restored = []
+    for part in parts:
+        if part.output.is_file() or not part.name.startswith(RESTORABLE):
+            continue
+        found, value = _restored_value(part.name, source)
+        if found:
+            write_json_atomic(part.output, {"part": part.name, "seconds": 0.0, "value": value,
+                                            "restored_from": origin})
+            restored.append(part.name)
+    log(f"[results] restored {len(restored)} part(s) from {source_path}: {', '.join(restored) or 'none'}")
+    return restored
+
+
+def restored_parts(parts: Sequence[Part]) -> dict[str, Any] | None:
+    """Which finished parts were restored rather than run, and from where (the report's 'restored' entry)."""
+    found: dict[str, Any] = {}
+    for part in parts:
+        origin = read_json(part.output).get("restored_from") if part.output.is_file() else None
+        if origin:
+            found.setdefault(origin["path"], {**origin, "parts": []})["parts"].append(part.name)
+    return {"sources": list(found.values())} if found else None
+
+
 def _ablations(cfg: ResultsConfig) -> list[dict[str, Any]]:
     main = _value(Path(cfg.work) / "ap" / f"{DIFFUSION}.json")
     return orchestration.evaluate_ablations(cfg.report, (main or {}).get("ap"))
@@ -240,7 +308,7 @@ def assemble(cfg: ResultsConfig) -> dict[str, Any]:
             "policies": policies, "ablations": [] if r.skip_ablations else (_value(work / "ablations.json") or []),
             "paper_compat": [] if r.skip_paper_compat else (_value(work / "paper_compat.json") or []),
             "label_physics": orchestration.read_label_physics(r.label_physics),
-            "provenance": orchestration.provenance(r)}
+            "provenance": orchestration.provenance(r), "restored": restored_parts(plan(cfg))}
 
 
 GENERATED_BEGIN = "<!-- make results: generated tables begin (edits between these markers are overwritten) -->"
@@ -277,8 +345,12 @@ def write_benchmarks(cfg: ResultsConfig) -> Path | None:
 
 
 def regenerate(cfg: ResultsConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run the unfinished parts, then write the report and the benchmark page from everything finished."""
-    status = run_parts(plan(cfg), cfg.force, log)
+    """Restore what ``cfg.restore`` offers, run the unfinished parts, then write the report and the benchmark page
+    from everything finished."""
+    parts = plan(cfg)
+    if cfg.restore is not None:
+        restore_parts([p for p in parts if not forced(p.name, cfg.force)], cfg.restore, cfg.report, log)
+    status = run_parts(parts, cfg.force, log)
     report = assemble(cfg)
     paths = write_report(report, cfg.report.out, cfg.report.figures_dir)
     bench = write_benchmarks(cfg)
@@ -312,6 +384,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-ablations", action="store_true")
     p.add_argument("--skip-benchmarks", action="store_true")
     p.add_argument("--force", nargs="*", default=[], metavar="PREFIX", help="redo the parts whose names start so")
+    p.add_argument("--restore", default=None, metavar="REPORT_JSON",
+                   help="seed the unfinished parts that do not depend on the pick cell (test data, AP, paper-compatible "
+                        "rows, ablations) from an earlier report's JSON; the report names them")
     p.add_argument("--list", action="store_true", help="list the parts and whether each is done, then stop")
     return p
 
@@ -325,7 +400,7 @@ def config_from_args(args: argparse.Namespace) -> ResultsConfig:
                           ablation_dir=args.ablation_dir, ablation_seeds=tuple(args.ablation_seeds),
                           train_data=args.train_data, progress=False)
     return ResultsConfig(report=report, work=args.work, test_scenes=args.test_scenes, train=args.train,
-                         benchmarks=not args.skip_benchmarks, force=tuple(args.force))
+                         benchmarks=not args.skip_benchmarks, force=tuple(args.force), restore=args.restore)
 
 
 def main(argv: list[str] | None = None) -> int:

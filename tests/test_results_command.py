@@ -188,3 +188,80 @@ def test_training_generates_each_variants_own_split_once_before_the_runs_that_re
     assert tuple(test) == results.TEST_DATA_ARGS
     assert TRAIN_MORE_POINTS.scenes == TRAIN_MORE_POINTS_BASELINE.scenes
     assert results.TRAIN_DATA_ARGS == TRAIN_MORE_POINTS_BASELINE.generate_args()
+
+
+def _fake_everything(monkeypatch, tmp_path: Path, calls: Counter) -> None:
+    monkeypatch.setattr(results, "REPO", tmp_path)
+    monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg, fresh=False: lambda: calls.update(["data"]) or {})
+    monkeypatch.setattr(orchestration, "evaluate_policy_ap", lambda name, cfg: calls.update([f"ap/{name}"])
+                        or _fake_ap(name, cfg))
+    monkeypatch.setattr(orchestration, "evaluate_ablations", lambda cfg, main_ap: calls.update(["ablations"])
+                        or [{"name": "reference", "kind": "trained", "description": "reference", "status": "ok", "reason": None,
+                             "ap": main_ap}])
+    monkeypatch.setattr(orchestration, "evaluate_paper_compat", lambda cfg, entries: calls.update(["paper_compat"])
+                        or [{"name": n, "label": e["label"], "status": "ok", "reason": None, "errors": {},
+                             "results": {"suctionnet": e["ap"]}} for n, e in entries.items()])
+    monkeypatch.setattr(orchestration, "evaluate_policy_clearance", _fake_clearance(calls, None))
+
+
+def test_restore_reruns_only_the_clearance_and_the_report_names_what_it_restored(tmp_path: Path, monkeypatch):
+    """After a change to the pick cell, ``--restore`` an earlier report's JSON: the test data, AP, paper-compatible
+    rows and ablations come from it (the cell does not enter them), the clearance runs, and the page says which
+    parts were restored."""
+    calls: Counter = Counter()
+    _fake_everything(monkeypatch, tmp_path, calls)
+    cfg = _config(tmp_path, tmp_path / "no_benchmarks")
+    earlier = json.loads(Path(results.regenerate(cfg, log=lambda _: None)["paths"]["json"]).read_text())
+    source = tmp_path / "earlier.json"
+    source.write_text(json.dumps(earlier))
+    calls.clear()
+    fresh = results.ResultsConfig(report=cfg.report, work=str(tmp_path / "work2"), bench_dir=cfg.bench_dir,
+                                  restore=str(source), force=("clearance",))
+    out = results.regenerate(fresh, log=lambda _: None)
+    assert calls == {f"{n}/rectangular-{la}": 1 for n in ("diffusion", "cao") for la in ("scattered", "stacked")}
+    dump = json.loads(Path(out["paths"]["json"]).read_text())
+    restored = ["data/test", "ap/diffusion", "ap/cao", "paper_compat", "ablations"]
+    assert dump["restored"]["sources"] == [{"path": str(source), "generated": earlier["generated"],
+                                            "parts": restored}]
+    for name in ("diffusion", "cao"):  # the AP is the earlier one, the clearance this run's
+        assert dump["policies"][name]["ap"] == earlier["policies"][name]["ap"]
+        assert dump["policies"][name]["clearance"]["overall"] == earlier["policies"][name]["clearance"]["overall"]
+    assert dump["ablations"] == earlier["ablations"] and dump["paper_compat"] == earlier["paper_compat"]
+    md = Path(out["paths"]["markdown"]).read_text()
+    assert ("**Restored, not re-run:** `data/test`, `ap/diffusion`, `ap/cao`, `paper_compat`, `ablations`, from "
+            f"`{source}`") in md
+    # A plain re-run of the restored work has nothing to do, and still names the restored parts.
+    calls.clear()
+    again = results.regenerate(results.ResultsConfig(report=cfg.report, work=fresh.work, bench_dir=cfg.bench_dir),
+                               log=lambda _: None)
+    assert not calls and "**Restored, not re-run:**" in Path(again["paths"]["markdown"]).read_text()
+    # A forced part is never restored: it runs.
+    redo = results.ResultsConfig(report=cfg.report, work=str(tmp_path / "work3"), bench_dir=cfg.bench_dir,
+                                 restore=str(source), force=("ap/cao",))
+    calls.clear()
+    results.regenerate(redo, log=lambda _: None)
+    assert calls["ap/cao"] == 1 and calls["ap/diffusion"] == 0
+
+
+def test_restore_refuses_a_report_measured_on_other_test_scenes_or_not_a_report(tmp_path: Path, monkeypatch, capsys):
+    calls: Counter = Counter()
+    _fake_everything(monkeypatch, tmp_path, calls)
+    cfg = _config(tmp_path, tmp_path / "no_benchmarks")
+    other = {"generated": "x", "config": {"test_data": "data/elsewhere"}, "policies": {}}
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    (tmp_path / "broken.json").write_text("{")
+    with pytest.raises(ValueError, match=r"--restore .*other.json: measured with other settings \(test_data"):
+        results.ResultsConfig(report=cfg.report, work=cfg.work, restore=str(tmp_path / "other.json"))
+    with pytest.raises(ValueError, match=r"--restore .*broken.json: not a readable report JSON"):
+        results.ResultsConfig(report=cfg.report, work=cfg.work, restore=str(tmp_path / "broken.json"))
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"--restore .*list.json: not a report JSON \(no 'policies'\)"):
+        results.ResultsConfig(report=cfg.report, work=cfg.work, restore=str(tmp_path / "list.json"))
+    assert not calls and not Path(cfg.work).exists()  # refused before anything ran or was written
+    with pytest.raises(ValueError, match="--restore .*missing.json: not a readable report JSON"):
+        results.ResultsConfig(report=cfg.report, restore=str(tmp_path / "missing.json"))
+    # On the command line: one line naming the flag and the file, and a non-zero exit.
+    with pytest.raises(SystemExit) as exit_info:
+        results.main(["--restore", str(tmp_path / "other.json"), "--test-data", str(tmp_path / "data"),
+                      "--work", cfg.work])
+    assert exit_info.value.code == 2 and "--restore" in capsys.readouterr().err

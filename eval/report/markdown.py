@@ -80,6 +80,15 @@ def clearance_line(report: dict[str, Any]) -> str:
             "(the same piles for every method).")
 
 
+def restored_lines(report: dict[str, Any]) -> list[str]:
+    """Which numbers ``make results --restore`` took from an earlier report instead of running them."""
+    sources = (report.get("restored") or {}).get("sources") or []
+    lines = [f"**Restored, not re-run:** {', '.join(f'`{n}`' for n in src['parts'])}, from `{src['path']}` "
+             f"(generated {src['generated']}). These parts do not depend on the pick cell; their numbers and costs "
+             "are that run's, and every other number here was run for this report." for src in sources]
+    return lines + [""] if lines else []
+
+
 def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out: Path) -> str:
     """The whole page, from ``run_report``'s dict; ``figures`` maps names to PNGs (linked relative to ``out``)."""
     cfg = report["config"]
@@ -95,6 +104,7 @@ def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out
              "ahead of another only where the interval of their paired difference (same scenes, same seeds) "
              "excludes 0.", ""]
     lines += cost_lines(report)
+    lines += restored_lines(report)
     ap_scenes = [e["ap"]["num_scenes"] for e in policies.values() if e.get("ap")]
     if ap_scenes and min(ap_scenes) < MIN_AP_SCENES:
         lines += [f"Only {min(ap_scenes)} test scenes (fewer than {MIN_AP_SCENES}): AP gaps of a few points are "

@@ -384,17 +384,23 @@ def evaluate_table_one(config: ReportConfig) -> dict[str, Any]:
     return result
 
 
-def load_clearance_source(path: str) -> dict[str, Any]:
-    """An earlier report's JSON dump (``write_report``), read before anything runs: one clear error if unusable."""
+def load_report_json(path: str, flag: str) -> dict[str, Any]:
+    """An earlier report's JSON dump (``write_report``), read before anything runs: one clear error naming the
+    command-line ``flag`` that gave it if unusable."""
     import json
 
     try:
         source = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:
-        raise ValueError(f"--clearance-from {path}: not a readable report JSON ({exc})") from exc
+        raise ValueError(f"{flag} {path}: not a readable report JSON ({exc})") from exc
     if not isinstance(source, dict) or not isinstance(source.get("policies"), dict):
-        raise ValueError(f"--clearance-from {path}: not a report JSON (no 'policies')")
+        raise ValueError(f"{flag} {path}: not a report JSON (no 'policies')")
     return source
+
+
+def load_clearance_source(path: str) -> dict[str, Any]:
+    """The report whose clearance ``--clearance-from`` reuses (``load_report_json``)."""
+    return load_report_json(path, "--clearance-from")
 
 
 def reuse_clearance(policies: dict[str, dict[str, Any]], source: dict[str, Any], config: ReportConfig) -> None:
