@@ -6,7 +6,8 @@ scripted top-patch picker (a few KD-tree queries, cheap beside the env) chooses 
 vector step is one attempt per env and pile builds count against the rate, as they do in training.
 Each worker bounds its native thread pools (Open3D's oneTBB and OpenMP, ``--worker-threads``, by
 ``parcelpick_env.parallel.limit_worker_threads``), so N workers use N cores rather than fighting over them. Prints one markdown table row per worker count (with the
-workers' CPU seconds per attempt, which other load on the machine does not inflate), and the speed-up.
+workers' CPU seconds per attempt, which other load on the machine does not inflate), and the speed-up, beside the lockstep ceiling: what N envs that each wait for the slowest at every step would reach
+on N free cores, from the 1-env run's attempt times (``lockstep_ceiling``).
 
     python benchmarks/bench_vector_env.py --envs 1 2 --seconds 60
 """
@@ -57,6 +58,17 @@ def _actions(obs: dict[str, np.ndarray], n: int) -> np.ndarray:
     return np.stack([top_patch_action({k: obs[k][i] for k in ("points", "normals")}) for i in range(n)])
 
 
+def lockstep_ceiling(step_times: np.ndarray, n: int) -> float:
+    """The speed-up that ``n`` lockstepped envs reach over one when they run in perfect parallel: ``n E[T] / E[max
+    of n draws of T]``, ``T`` one env's step time, exactly over the empirical distribution of ``step_times``. A
+    vector env's step waits for its slowest env, so the spread of attempt times caps the speed-up below ``n``
+    whatever the cores."""
+    t = np.sort(np.asarray(step_times, dtype=np.float64))
+    below = np.arange(len(t) + 1) / len(t)  # P(T <= t_(k)) for k = 0..m
+    expected_max = float(np.sum(t * np.diff(below**n)))
+    return n * float(t.mean()) / expected_max
+
+
 def attempts_per_second(n_envs: int, seconds: float, seed: int, env_kwargs: dict, context: str,
                         worker_threads: int = 1) -> dict:
     """Run ``n_envs`` async envs for about ``seconds`` of stepping (after the first reset)."""
@@ -73,10 +85,12 @@ def attempts_per_second(n_envs: int, seconds: float, seed: int, env_kwargs: dict
         started = time.perf_counter()
         obs, _ = envs.reset(seed=seed)
         first_reset = time.perf_counter() - started
-        steps, episodes, successes = 0, 0, 0
+        steps, episodes, successes, step_times = 0, 0, 0, []
         started = time.perf_counter()
         while time.perf_counter() - started < seconds:
+            t0 = time.perf_counter()
             obs, reward, terminated, truncated, _ = envs.step(_actions(obs, n_envs))
+            step_times.append(time.perf_counter() - t0)
             steps += 1
             successes += int(np.sum(reward > 0))
             episodes += int(np.sum(terminated | truncated))
@@ -90,7 +104,7 @@ def attempts_per_second(n_envs: int, seconds: float, seed: int, env_kwargs: dict
     attempts = steps * n_envs
     return {"envs": n_envs, "attempts": attempts, "wall": wall, "rate": attempts / wall, "episodes": episodes,
             "successes": successes, "first_reset": first_reset, "cpu_per_attempt": cpu / max(attempts, 1),
-            "parent_cpu_per_attempt": parent / max(attempts, 1)}
+            "parent_cpu_per_attempt": parent / max(attempts, 1), "step_times": np.asarray(step_times)}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -123,10 +137,11 @@ def main(argv: list[str] | None = None) -> None:
           f"load average before {os.getloadavg()[0]:.2f}")
     print("| envs | attempts | wall s | attempts/s | worker CPU s/attempt | parent CPU s/attempt | episodes | successes | first reset s |")
     print("|---|---|---|---|---|---|---|---|---|")
-    rates = {}
+    rates, single = {}, None
     for n in args.envs:
         r = attempts_per_second(n, args.seconds, args.seed, env_kwargs, args.context, args.worker_threads)
         rates[n] = r["rate"]
+        single = r["step_times"] if n == 1 else single
         print(f"| {n} | {r['attempts']} | {r['wall']:.1f} | {r['rate']:.2f} | {r['cpu_per_attempt']:.2f} | {r['parent_cpu_per_attempt']:.3f} | "
               f"{r['episodes']} | {r['successes']} | "
               f"{r['first_reset']:.1f} |", flush=True)
@@ -134,7 +149,8 @@ def main(argv: list[str] | None = None) -> None:
     if base:
         for n, rate in rates.items():
             if n != 1:
-                print(f"speed-up at {n} envs: {rate / base:.2f}x")
+                print(f"speed-up at {n} envs: {rate / base:.2f}x (lockstep ceiling from the 1-env attempt times: "
+                      f"{lockstep_ceiling(single, n):.2f}x)")
     print(f"load average after {os.getloadavg()[0]:.2f}")
 
 
