@@ -6,8 +6,9 @@ scripted top-patch picker (a few KD-tree queries, cheap beside the env) chooses 
 vector step is one attempt per env and pile builds count against the rate, as they do in training.
 Each worker bounds its native thread pools (Open3D's oneTBB and OpenMP, ``--worker-threads``, by
 ``parcelpick_env.parallel.limit_worker_threads``), so N workers use N cores rather than fighting over them. Prints one markdown table row per worker count (with the
-workers' CPU seconds per attempt, which other load on the machine does not inflate), and the speed-up, beside the lockstep ceiling: what N envs that each wait for the slowest at every step would reach
-on N free cores, from the 1-env run's attempt times (``lockstep_ceiling``).
+workers' CPU seconds per attempt, which other load on the machine does not inflate), and the speed-up,
+beside the lockstep ceiling: what N envs that each wait for the slowest at every step would reach on N free
+cores, from the 1-env run's attempt times (``lockstep_ceiling``).
 
     python benchmarks/bench_vector_env.py --envs 1 2 --seconds 60
 """
