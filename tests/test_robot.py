@@ -17,6 +17,7 @@ from parcelpick_env.robot.gen3 import (
     SuctionToolSpec,
     gen3_suction_urdf,
 )
+from parcelpick_env.robot.kinematics import cross_rows
 from parcelpick_env.robot.timing import GEN3_LIMITS, bound_violation, joint_trajectory
 
 
@@ -194,6 +195,17 @@ def test_sweep_trajectory_checks_every_sample(client):
     arm.set_joints(q_a)
     hit = arm.sweep_trajectory(traj)
     assert not hit.completed and hit.collision.body == wall and hit.link == hit.collision.link
+
+
+@pytest.mark.parametrize("a_shape, b_shape", [((3,), (3,)), ((4, 3), (4, 3)), ((3,), (5, 3)), ((3, 7, 3), (3, 7, 3)),
+                                              ((3, 7, 3), (3, 1, 3))])
+def test_cross_rows_is_numpys_cross_product_for_every_shape_the_hot_loops_use(a_shape, b_shape):
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=a_shape), rng.normal(size=b_shape)
+    out = cross_rows(a, b)
+    assert out.shape == np.broadcast_shapes(a_shape, b_shape)
+    np.testing.assert_allclose(out, np.cross(a, b), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(cross_rows(np.eye(3)[0], np.eye(3)[1]), [0.0, 0.0, 1.0])  # x cross y = z
 
 
 def test_tool_motion_matches_finite_differences_of_forward_kinematics(client):

@@ -87,8 +87,8 @@ def suction_ring_ratios(force: np.ndarray, torque: np.ndarray, mu: float, r: flo
     """
     force, torque = np.asarray(force, dtype=np.float64), np.asarray(torque, dtype=np.float64)
     vacuum = np.asarray(vacuum, dtype=np.float64)
-    fx, fy, fz = np.moveaxis(force, -1, 0)
-    tx, ty, tz = np.moveaxis(torque, -1, 0)
+    fx, fy, fz = force[..., 0], force[..., 1], force[..., 2]
+    tx, ty, tz = torque[..., 0], torque[..., 1], torque[..., 2]
     friction_cap = mu * (fz + vacuum)
     material_cap = math.pi * r * k
     # all six at once (one division, not six small ones: this runs at every step of a carry)
