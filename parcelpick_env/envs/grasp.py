@@ -82,9 +82,7 @@ def cup_loads(contacts: Contacts, exempt: set[int]) -> Contacts:
     bearing = contacts.bearing(exempt) & (contacts.normal_force > 0.0)
     if not np.any(bearing):
         return contacts
-    # a comprehension, not np.isin: a handful of contacts every carry step (60 -> 25 us a call, benchmarks/RESULTS.md)
-    sideways = (np.array([b in exempt for b in contacts.bodies], dtype=bool)
-                & (np.abs(contacts.normals[:, 2]) < SIDEWAYS_NORMAL_Z))
+    sideways = contacts.from_bodies(exempt) & (np.abs(contacts.normals[:, 2]) < SIDEWAYS_NORMAL_Z)
     return contacts.without(~(bearing | sideways))
 
 
@@ -612,7 +610,7 @@ class PickExecutor:
 
         def check() -> tuple[str, Failure] | None:
             contacts = contact_forces(client, body, {self.arm.body})
-            foreign = (contacts.normal_force > 0.0) & np.array([b not in exempt for b in contacts.bodies], dtype=bool)
+            foreign = (contacts.normal_force > 0.0) & ~contacts.from_bodies(exempt)
             hardest = None if not np.any(foreign) else int(
                 contacts.bodies[np.flatnonzero(foreign)[np.argmax(contacts.normal_force[foreign])]])
             if np.any(foreign & (contacts.normal_force > strike)):

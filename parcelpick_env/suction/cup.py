@@ -136,10 +136,15 @@ class Contacts:
         return Contacts(self.points[keep], self.forces[keep], self.bodies[keep], self.normals[keep],
                         self.normal_force[keep])
 
+    def from_bodies(self, bodies: set[int]) -> np.ndarray:
+        """Mask of contacts with any of ``bodies`` (a comprehension, not np.isin: a handful of contacts, at
+        every carry step; 60 -> 25 us a ``cup_loads`` call, benchmarks/RESULTS.md)."""
+        return np.array([b in bodies for b in self.bodies], dtype=bool)
+
     def bearing(self, bodies: set[int], min_up: float = BEARING_COS) -> np.ndarray:
         """Mask of contacts from ``bodies`` that push the body up (normal with an upward component,
         ``BEARING_COS``): the surfaces it is resting on."""
-        return np.array([b in bodies for b in self.bodies], dtype=bool) & (self.normals[:, 2] > min_up)
+        return self.from_bodies(bodies) & (self.normals[:, 2] > min_up)
 
 
 def contact_forces(client: int, body: int, ignore: frozenset[int] | set[int] = frozenset()) -> Contacts:
