@@ -18,7 +18,7 @@ from parcelpick_env.assets.generator import CARTON_SIDE_RANGE, CUP_MASS_LIMIT, M
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.envs.config import ENV_CUP_RADIUS, GraspConfig
 from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
-from parcelpick_env.envs.grasp import CONDITIONS, LINE_STEP, MOVES
+from parcelpick_env.envs.grasp import CONDITIONS, LINE_STEP, MOVES, Failure, MoveReport
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 from parcelpick_env.robot.arm import MAX_IK_JUMP
 from parcelpick_env.suction.cup import CupSpec, ToolState, contact_forces, cup_wrench, mesh_inertia
@@ -324,6 +324,54 @@ def test_a_hover_beyond_reach_gives_way_to_the_highest_the_arm_reaches_above_the
         assert pick.pre[2] + 0.5 < tip[2] < pick.hover[2]
         assert ex.arm.ik(tip + [0.0, 0.0, LINE_STEP], down, seed=pick.q_hover) is None  # as high as it reaches
         np.testing.assert_allclose(ex.kin.forward(pick.descend.q[-1])[0], pick.pre, atol=2e-3)  # and comes down
+        # the carrying height clears the column's top as well: beyond the arm, so no branch lifts the box there
+        assert not ex._lift_solves(env.scene, pick)
+    finally:
+        env.close()
+
+
+def test_the_plan_takes_the_home_seed_branch_when_the_ready_branch_cannot_lift(monkeypatch):
+    """The plan checks the lift before anything moves. Where the approach's IK branch cannot rise (or cannot
+    approach at all) and the branch seeded at the Kinova home can, that one is planned; otherwise the
+    ready-pose branch stands, and a lift that solves from it is never re-planned."""
+    env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0)]))
+    try:
+        env.reset(seed=0)
+        ex, up = env.executor, np.array([0.0, 0.0, 1.0])
+        point = env.scene.parcels[0].position + [0.0, 0.0, 0.05]
+        assert ex._lift_solves(env.scene, ex._plan(env.scene, point, up))  # a box in the open lifts
+        home, plan_branch = np.asarray(env.arm.config.ik_seed), ex._plan_branch
+        planned: list[tuple[np.ndarray, object]] = []  # (seed, plan) of every branch planned
+
+        def recording(scene, p, n, seed):
+            planned.append((np.asarray(seed).copy(), plan_branch(scene, p, n, seed)))
+            return planned[-1][1]
+
+        monkeypatch.setattr(ex, "_plan_branch", recording)
+        for lifting, branches, takes_home in (({"ready", "home"}, 1, False), ({"home"}, 2, True), (set(), 2, False)):
+            planned.clear()
+            monkeypatch.setattr(ex, "_lift_solves", lambda scene, pick, lifting=lifting: (
+                "ready" if pick is planned[0][1] else "home") in lifting)
+            pick = ex._plan(env.scene, point, up)
+            assert len(planned) == branches
+            np.testing.assert_array_equal(planned[0][0], ex.ready_q)
+            if branches == 2:
+                np.testing.assert_array_equal(planned[1][0], home)
+            assert pick is planned[1 if takes_home else 0][1]
+        # the ready branch cannot approach: the home branch's plan is taken, and the plan's report is 'ok'
+        monkeypatch.setattr(ex, "_lift_solves", lambda scene, pick: True)
+        failed = MoveReport("plan", "unreachable", Failure("approach", condition="ik failed along the line"))
+        monkeypatch.setattr(ex, "_plan_branch", lambda scene, p, n, seed: failed if seed is ex.ready_q
+                            else plan_branch(scene, p, n, seed))
+        ex._reports = []
+        pick = ex._plan(env.scene, point, up)
+        assert not isinstance(pick, MoveReport) and [r.outcome for r in ex._reports] == ["ok"]
+        # neither branch plans: the ready branch's failure is the one reported
+        monkeypatch.setattr(ex, "_plan_branch", lambda scene, p, n, seed: failed if seed is ex.ready_q
+                            else MoveReport("plan", "unreachable", Failure("hover", condition="ik")))
+        ex._reports = []
+        rep = ex._plan(env.scene, point, up)
+        assert rep.outcome == "unreachable" and rep.failure.move == "approach" and ex._reports[-1].failure.move == "approach"
     finally:
         env.close()
 

@@ -284,21 +284,9 @@ class PickExecutor:
         ``max_speed`` and its peak acceleration within ``max_accel`` (speed scales with the slow-down
         s, acceleration with s^2). (trajectory, None) or (None, why)."""
         arm = self.arm
-        q0 = np.asarray(q0, dtype=np.float64)
-        start = self.kin.forward(q0)[0]
-        # A joint change above MAX_IK_JUMP between neighbours is a branch switch, or a fast but continuous turn
-        # near a singular pose: a continuous one shrinks with the step (kept, FINE_STEPS times finer), a switch not.
-        for k, limit in ((1, MAX_IK_JUMP), (FINE_STEPS, MAX_IK_JUMP / 2)):
-            n = max(1, math.ceil(float(np.linalg.norm(end - start)) * k / step))
-            qs = arm.cartesian_path(q0, start + (end - start) * (np.arange(1, n + 1)[:, None] / n), axis, x_axis)
-            if qs is None:
-                return None, "ik failed along the line"
-            path = np.vstack([q0[None], np.asarray(qs)])
-            jump = float(np.abs(np.diff(path, axis=0)).max())
-            if jump <= limit:
-                break
-            if k == FINE_STEPS:
-                return None, f"ik jumped {jump:.2f} rad between neighbouring points"
+        path, why = self._line_path(q0, end, axis, x_axis, step)
+        if path is None:
+            return None, why
         traj = path_trajectory(path, arm.limits, dt)
         motion = [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
         v = max(float(np.linalg.norm(m[2])) for m in motion)
@@ -307,6 +295,24 @@ class PickExecutor:
         if max_accel is not None and a > max_accel:
             scale = min(scale, math.sqrt(max_accel / a))
         return (traj if scale >= 1.0 else path_trajectory(path, arm.limits, dt, 0.98 * scale)), None
+
+    def _line_path(self, q0: np.ndarray, end: np.ndarray, axis: np.ndarray, x_axis: np.ndarray | None = None,
+                   step: float = LINE_STEP) -> tuple[np.ndarray | None, str | None]:
+        """Joint waypoints of ``_line`` (``q0`` first), untimed: (path, None) or (None, why)."""
+        q0 = np.asarray(q0, dtype=np.float64)
+        start = self.kin.forward(q0)[0]
+        # A joint change above MAX_IK_JUMP between neighbours is a branch switch, or a fast but continuous turn
+        # near a singular pose: a continuous one shrinks with the step (kept, FINE_STEPS times finer), a switch not.
+        for k, limit in ((1, MAX_IK_JUMP), (FINE_STEPS, MAX_IK_JUMP / 2)):
+            n = max(1, math.ceil(float(np.linalg.norm(end - start)) * k / step))
+            qs = self.arm.cartesian_path(q0, start + (end - start) * (np.arange(1, n + 1)[:, None] / n), axis, x_axis)
+            if qs is None:
+                return None, "ik failed along the line"
+            path = np.vstack([q0[None], np.asarray(qs)])
+            jump = float(np.abs(np.diff(path, axis=0)).max())
+            if jump <= limit:
+                return path, None
+        return None, f"ik jumped {jump:.2f} rad between neighbouring points"
 
     def _line_collision(self, traj: Trajectory, attached: Attachment | None = None):
         """The first collision (planner's margin) at the samples of a Cartesian line, taken every
@@ -388,8 +394,45 @@ class PickExecutor:
 
     # ------------------------------------------------------------------------------------ moves
     def _plan(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> _Pick | MoveReport:
-        g, arm = self.grasp, self.arm
+        """Hover, descent and approach on the IK branch nearest the ready pose; where that branch cannot
+        approach, or the lift cannot rise from it (a wrist joint at its limit part-way up), the branch the
+        Kinova home seed gives (``ArmConfig.ik_seed``), if that one does. A cell plans the whole pick before
+        it moves: the branch chosen for the approach decides whether the parcel can be raised at all (in the
+        oracle's 10-episode, 30-parcel heap, lifts failed on IK where the home-seeded branch at the same
+        contact lifted: joint 6 reached its limit part-way up from the ready-pose branch)."""
         normal = normal / np.linalg.norm(normal)
+        pick = self._plan_branch(scene, point, normal, self.ready_q)
+        if not (isinstance(pick, _Pick) and self._lift_solves(scene, pick)):
+            other = self._plan_branch(scene, point, normal, np.asarray(self.arm.config.ik_seed, dtype=np.float64))
+            if isinstance(other, _Pick) and (isinstance(pick, MoveReport) or self._lift_solves(scene, other)):
+                pick = other
+        if isinstance(pick, MoveReport):
+            return self._report("plan", pick.outcome, pick.failure)
+        self._report("plan")
+        return pick
+
+    def _lift_solves(self, scene: Scene, pick: _Pick) -> bool:
+        """Whether the straight lift from the contact, on the approach's IK branch, solves up to the carrying
+        height (``_lift_height`` for the parcel the approach line meets first; yaw free, as the lift's
+        fallback). Without a parcel on the line there is nothing to lift: True."""
+        approach = _required(pick.approach, "the approach (set by plan)")
+        start, end = pick.pre, pick.point - self.grasp.overshoot * pick.normal
+        bodies = {ps.body_id for ps in scene.parcels}
+        hits = [h for h in p.rayTest(start.tolist(), end.tolist(), physicsClientId=self.sim.client) if h[0] in bodies]
+        if not hits:
+            return True
+        q_contact = self.arm.ik(pick.point, pick.axis, seed=approach.q[-1])
+        if q_contact is None:
+            return True  # the approach reaches the overshoot point; the lift's own IK decides
+        top = max(self._lift_height(scene, hits[0][0], float(pick.point[2])), pick.point[2] + self.grasp.min_lift)
+        path, _ = self._line_path(q_contact, np.array([pick.point[0], pick.point[1], top]), pick.axis)
+        return path is not None
+
+    def _plan_branch(self, scene: Scene, point: np.ndarray, normal: np.ndarray, seed: np.ndarray
+                     ) -> _Pick | MoveReport:
+        """The pick's free-space and approach moves with the hover IK seeded at ``seed``, or the (unfiled)
+        report of the move that cannot be planned."""
+        g, arm = self.grasp, self.arm
         axis = -normal
         pre = point + g.pregrasp_distance * normal
         clear = self._obstacle_top(scene, point[:2], g.hover_corridor) + g.hover_clearance
@@ -398,8 +441,7 @@ class PickExecutor:
         pick = _Pick(point, normal, axis, hover, pre)
         # an IK branch whose wrist would stand in a wall gives way to another (the yaw is free); a goal closer
         # than the planner's margin but not touching stays acceptable, as the planner accepts it
-        pick.q_hover = arm.ik(hover, axis, seed=self.ready_q,
-                              valid=lambda q: self.planner.collision(q, margin=0.0) is None)
+        pick.q_hover = arm.ik(hover, axis, seed=seed, valid=lambda q: self.planner.collision(q, margin=0.0) is None)
         high = hover[2] > pre[2] + HOVER_RISE
         why = None
         if pick.q_hover is not None and high:
@@ -407,7 +449,7 @@ class PickExecutor:
         if high and pick.descend is None:
             # above a heap the hover IK may find no answer, or a branch that cannot come straight down (it jumps
             # mid-line): solve at the pre-grasp point and climb the line instead, as high as the arm reaches
-            climbed = self._climb(pre, hover, axis)
+            climbed = self._climb(pre, hover, axis, seed)
             if climbed is not None:
                 if float(self.kin.forward(climbed)[0][2]) <= pre[2] + HOVER_RISE:  # no higher: hover at pre-grasp
                     pick.q_hover, high = climbed, False
@@ -415,27 +457,30 @@ class PickExecutor:
                     descend, why_climbed = self._line(climbed, pre, axis, g.control_dt_free, g.carry_speed)
                     if descend is not None or pick.q_hover is None:
                         pick.q_hover, pick.descend, why = climbed, descend, why_climbed
+
+        def failed(move: str, condition: str | None) -> MoveReport:
+            return MoveReport("plan", "unreachable", Failure(move, condition=condition), 0, 0.0)
+
         if pick.q_hover is None:
-            return self._report("plan", "unreachable", Failure("hover", condition="ik"))
+            return failed("hover", "ik")
         q_pre = pick.q_hover
         if high:
             if pick.descend is None:
-                return self._report("plan", "unreachable", Failure("descend", condition=why))
+                return failed("descend", why)
             q_pre = pick.descend.q[-1]
         pick.approach, why = self._line(q_pre, point - g.overshoot * normal, axis, self.sim.config.timestep,
                                         g.approach_speed)
         if pick.approach is None:
-            return self._report("plan", "unreachable", Failure("approach", condition=why))
-        self._report("plan")
+            return failed("approach", why)
         return pick
 
-    def _climb(self, low: np.ndarray, high: np.ndarray, axis: np.ndarray) -> np.ndarray | None:
+    def _climb(self, low: np.ndarray, high: np.ndarray, axis: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
         """Joint angles for the highest point towards ``high`` reached from an IK answer at ``low`` and up the
         straight line between them (``cartesian_path``, every ``LINE_STEP``), or None without an answer at
         ``low``. A far, high hover pose that the seed above the bin centre does not converge to is usually one
         small step from a configuration that reaches the pile below it; one beyond the arm's reach gives way to
         the highest hover the arm reaches above the pick (the planned free move to it is still collision-free)."""
-        q = self.arm.ik(low, axis, seed=self.ready_q)
+        q = self.arm.ik(low, axis, seed=seed)
         if q is None:
             return None
         n = max(1, math.ceil(float(np.linalg.norm(high - low)) / LINE_STEP))
@@ -786,23 +831,23 @@ class PickExecutor:
             return None
         return np.array([*(self.grasp.break_away * direction), 0.0])
 
-    def _lift_height(self, scene: Scene, pick: _Pick) -> float:
-        """Tip height for carrying: the pile top (every other parcel and fixture) or the rim, whichever
-        is higher, plus the clearance and the held parcel's extent below the lip."""
+    def _lift_height(self, scene: Scene, body: int, tip_z: float) -> float:
+        """Tip height for carrying parcel ``body`` held at tip height ``tip_z``: the pile top (every other
+        parcel and fixture) or the rim, whichever is higher, plus the clearance and the parcel's extent
+        below the lip."""
         spec = scene.bin
-        body = pick.held.body_id
         top = spec.floor_z + spec.wall_height
         for b in self._obstacles(scene):
             if b != body and self.sim.has_body(b):
                 top = max(top, float(self.sim.aabb(b)[1][2]))
-        tip_z = float(self.kin.forward(self.arm.q)[0][2])
         below = tip_z - float(self.sim.aabb(body)[0][2])
         return top + self.grasp.clearance + below
 
     def _lift(self, scene: Scene, pick: _Pick) -> MoveReport:
         self._attach(pick)
         tip = self.kin.forward(self.arm.q)[0]
-        top = np.array([tip[0], tip[1], max(self._lift_height(scene, pick), tip[2] + self.grasp.min_lift)])
+        height = self._lift_height(scene, pick.held.body_id, float(tip[2]))
+        top = np.array([tip[0], tip[1], max(height, tip[2] + self.grasp.min_lift)])
         if pick.relief is None:
             return self._carry(scene, pick, "lift", top, pick.supports)
         # break away: off what presses it sideways while rising the first break_away_rise, then straight up
