@@ -424,7 +424,7 @@ class PickExecutor:
         q_contact = self.arm.ik(pick.point, pick.axis, seed=approach.q[-1])
         if q_contact is None:
             return True  # the approach reaches the overshoot point; the lift's own IK decides
-        top = max(self._lift_height(scene, hits[0][0], float(pick.point[2])), pick.point[2] + self.grasp.min_lift)
+        top = self._lift_height(scene, hits[0][0], float(pick.point[2]))
         path, _ = self._line_path(q_contact, np.array([pick.point[0], pick.point[1], top]), pick.axis)
         return path is not None
 
@@ -834,20 +834,19 @@ class PickExecutor:
     def _lift_height(self, scene: Scene, body: int, tip_z: float) -> float:
         """Tip height for carrying parcel ``body`` held at tip height ``tip_z``: the pile top (every other
         parcel and fixture) or the rim, whichever is higher, plus the clearance and the parcel's extent
-        below the lip."""
+        below the lip; at least ``min_lift`` above ``tip_z``."""
         spec = scene.bin
         top = spec.floor_z + spec.wall_height
         for b in self._obstacles(scene):
             if b != body and self.sim.has_body(b):
                 top = max(top, float(self.sim.aabb(b)[1][2]))
         below = tip_z - float(self.sim.aabb(body)[0][2])
-        return top + self.grasp.clearance + below
+        return max(top + self.grasp.clearance + below, tip_z + self.grasp.min_lift)
 
     def _lift(self, scene: Scene, pick: _Pick) -> MoveReport:
         self._attach(pick)
         tip = self.kin.forward(self.arm.q)[0]
-        height = self._lift_height(scene, pick.held.body_id, float(tip[2]))
-        top = np.array([tip[0], tip[1], max(height, tip[2] + self.grasp.min_lift)])
+        top = np.array([tip[0], tip[1], self._lift_height(scene, pick.held.body_id, float(tip[2]))])
         if pick.relief is None:
             return self._carry(scene, pick, "lift", top, pick.supports)
         # break away: off what presses it sideways while rising the first break_away_rise, then straight up
