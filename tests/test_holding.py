@@ -376,6 +376,40 @@ def test_the_plan_takes_the_home_seed_branch_when_the_ready_branch_cannot_lift(m
         env.close()
 
 
+def test_a_placed_box_tilts_about_its_own_x_axis_after_the_yaw():
+    """Yawed 90 deg, a box's own x axis is the world y: tilting about it leans the top face towards +x."""
+    box = PlacedBox((0.2, 0.1, 0.05), 1.0, yaw=math.pi / 2, tilt=math.radians(30.0))
+    np.testing.assert_allclose(box.rotation().apply([0.0, 0.0, 1.0]), [0.5, 0.0, math.sqrt(3) / 2], atol=1e-12)
+    np.testing.assert_allclose(box.rotation().apply([1.0, 0.0, 0.0]), [0.0, 1.0, 0.0], atol=1e-12)
+
+
+def test_a_tilted_lift_beyond_the_wrist_is_turned_down_once_the_parcel_clears_its_neighbours():
+    """A carton on a ramp tilted 17 deg, with a 60 cm column elsewhere in the bin setting the carrying height: no
+    IK branch raises it that high at its contact axis (the wrist reaches its limit part-way up, as in the oracle's
+    heap), so the lift rises on the contact axis until the carton's underside clears the ramp, turns the tool
+    down about the lip there, and rises top-down; the pick succeeds (before: 'unreachable' in the lift)."""
+    ramp = PlacedBox((0.20, 0.20, 0.04), 1.0, tilt=math.radians(-17.0), center=(0.12, 0.08, 0.20))
+    column = PlacedBox((0.08, 0.08, 0.60), 1.0, (-0.25, -0.15))
+    env = make(BoxScene([ramp.resting_on_top((0.12, 0.12, 0.06), 0.5)], fixtures=[ramp, column]))
+    try:
+        env.reset(seed=0)
+        ex, g, ps = env.executor, env.config.grasp, env.scene.parcels[0]
+        up = ramp.rotation().apply([0.0, 0.0, 1.0])
+        point = ps.position + 0.03 * up
+        seeds = (ex.ready_q, np.asarray(env.arm.config.ik_seed))
+        assert not any(ex._lift_solves(env.scene, ex._plan_branch(env.scene, point, up, seed)) for seed in seeds)
+        ramp_top = env.sim.aabb(env.scene.meta["fixtures"][0])[1][2]
+        turn_z = ramp_top + g.clearance + (point[2] - env.sim.aabb(ps.body_id)[0][2])  # the underside clears the ramp
+        res = ex.attempt(env.scene, point, up)
+        assert res.outcome == "success", res.failure
+        lift = [e for e in res.trace if e["move"] == "lift"]
+        below = [e for e in lift if e["tip"][2] < turn_z - 0.01]
+        assert below and all(np.degrees(np.arccos(np.clip(e["axis"] @ -up, -1, 1))) < 2.0 for e in below)
+        assert np.degrees(np.arccos(np.clip(-lift[-1]["axis"][2], -1, 1))) < 2.0  # top-down at the carrying height
+    finally:
+        env.close()
+
+
 def test_a_line_whose_ik_turns_fast_but_continuously_is_kept_and_a_branch_switch_is_not(monkeypatch):
     env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0)]))
     try:

@@ -50,7 +50,9 @@ class PlacedBox:
     center: tuple[float, float, float] | None = None  # overrides xy and z
 
     def rotation(self) -> Rotation:
-        return Rotation.from_euler("zx", [self.yaw, self.tilt])
+        # intrinsic ("ZX"): the tilt is about the box's own x axis once yawed (extrinsic "zx" tilted every
+        # box about the world x, whatever its yaw; no scene combined the two before)
+        return Rotation.from_euler("ZX", [self.yaw, self.tilt])
 
     def pose(self, floor_z: float) -> tuple[np.ndarray, np.ndarray]:
         """Centre position and xyzw orientation in the world."""
