@@ -38,7 +38,9 @@ How it picks, per parcel, on the true meshes:
    half (``leaned_on``), then robust seals before ones within ``seal_margin`` of the threshold.
 4. Reachability (``ArmReach``): the arm's own numpy IK, chained from the pre-grasp point through the
    contact up to the carrying height; the first ranked candidate it reaches is proposed, the unreachable
-   ones checked go to the back (never out).
+   ones checked go to the back (never out). Where it reaches none of the first ``reach_checks``, the env's
+   own IK (on a private copy of the arm) checks the first ``confirm_checks`` again, and where that refuses
+   them too, the best candidate of every other parcel is checked in rank order.
 
 ``scores`` in the returned ``Candidates`` encode that rank (1 for the first, falling linearly); the
 physical scores of the returned candidates are kept in ``last_scores`` and their parcels in
@@ -53,13 +55,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 import open3d as o3d
+import pybullet as pb
 import trimesh
 from scipy.spatial.transform import Rotation
 
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
-from parcelpick_env.robot.arm import ArmConfig
+from parcelpick_env.robot.arm import ArmConfig, Gen3Arm
 from parcelpick_env.robot.gen3 import JOINTS, SuctionToolSpec
 from parcelpick_env.robot.kinematics import Gen3Kinematics
 from parcelpick_env.suction.config import SuctionConfig
@@ -106,6 +109,9 @@ class OracleConfig:
     last_resort_face_tilt_deg: float = 85.0
     seal_margin: float = 0.05  # a seal this close to the threshold is a last resort: physics moves it by ~0.01
     reach_checks: int = 40  # ranked candidates checked for reachability (IK along the pick) per decision
+    # where all of those fail, this many of the first are checked again by the cell's own IK (slow, exact), and
+    # if it refuses them too, the best candidate of each other parcel is checked in rank order (``_reachable_first``)
+    confirm_checks: int = 2
     reach_step: float = 0.05  # m between IK checks along the lift line
 
     def __post_init__(self) -> None:
@@ -147,6 +153,7 @@ class GroundTruth:
     bin_centre: np.ndarray  # (2,)
     obstacles_top: float = 0.0  # m: the bin rim's height
     asset_index: np.ndarray | None = None  # (P,) library index of each parcel, < 0 outside the library
+    floor_z: float = 0.0  # m: the bin floor's height
 
 
 def ground_truth(obs: Mapping[str, Any], library: AssetLibrary) -> GroundTruth:
@@ -174,7 +181,8 @@ def ground_truth(obs: Mapping[str, Any], library: AssetLibrary) -> GroundTruth:
     return GroundTruth(meshes=meshes, coms=np.asarray(obs["parcel_com"], dtype=np.float64)[rows],
                        masses=np.asarray(obs["parcel_mass"], dtype=np.float64)[rows], obstacles=spec.meshes(),
                        bin_centre=np.asarray(spec.center_xy, dtype=np.float64),
-                       obstacles_top=float(spec.floor_z + spec.wall_height), asset_index=index)
+                       obstacles_top=float(spec.floor_z + spec.wall_height), asset_index=index,
+                       floor_z=float(spec.floor_z))
 
 
 def uncovered_top_points(truth: GroundTruth, offsets: np.ndarray, num_threads: int = 0,
@@ -370,19 +378,31 @@ def best_labelled(obs: Mapping[str, Any], top_k: int) -> Candidates:
 
 
 class ArmReach:
-    """Whether the cell's arm reaches a pick: the arm's own numpy kinematics (``Gen3Kinematics.refine``, the
-    same damped least squares the env's IK refines with) at the mount, joint limits and IK tolerances of
-    ``ArmConfig``, chained along the pick from the contact up to the carrying height (every ``step``), tool
-    on the approach axis. A deterministic local solve: a reachable pose it misses only moves a candidate
-    back in the ranking, never out of it."""
+    """Whether the cell's arm reaches a pick, two ways.
 
-    def __init__(self, arm: ArmConfig | None = None, tool: SuctionToolSpec = SuctionToolSpec()) -> None:
-        arm = arm or ArmConfig()
-        self.kin = Gen3Kinematics(arm.base_position, arm.base_yaw, tool.length)
+    ``reaches``: the arm's own numpy kinematics (``Gen3Kinematics.refine``, the same damped least squares the
+    env's IK refines with) at the mount, joint limits and IK tolerances of ``ArmConfig``, chained along the pick
+    from the contact up to the carrying height (every ``step``), tool on the approach axis. Fast, and a local
+    solve from the Kinova home: it misses reachable poses (on the Table V grid, 8 decisions found none of their
+    40 checked candidates reachable, and the cell made the first one every time).
+
+    ``confirms``: the env's own solver (``Gen3Arm.ik``: pybullet's null-space guesses at several cup yaws,
+    refined, then the Kinova home; ``cartesian_path`` along the line) on a copy of the arm alone in a private
+    pybullet DIRECT client (no scene: kinematics only), first seeded at the env's ready pose above the bin
+    centre, as the env's plan is. About 0.3 s a check against 30 ms, so it only confirms a refusal.
+    """
+
+    def __init__(self, arm: ArmConfig | None = None, tool: SuctionToolSpec = SuctionToolSpec(),
+                 ready_height: float = EnvConfig().grasp.ready_height) -> None:
+        self.config = arm or ArmConfig()
+        self.kin = Gen3Kinematics(self.config.base_position, self.config.base_yaw, tool.length)
         self.lower = np.array([j[4] for j in JOINTS])
         self.upper = np.array([j[5] for j in JOINTS])
-        self.seed = np.asarray(arm.ik_seed, dtype=np.float64)
-        self.tol_p, self.tol_a = arm.ik_position_tol, arm.ik_angle_tol
+        self.seed = np.asarray(self.config.ik_seed, dtype=np.float64)
+        self.tol_p, self.tol_a = self.config.ik_position_tol, self.config.ik_angle_tol
+        self.ready_height = float(ready_height)
+        self._arm: Gen3Arm | None = None  # the env's solver, made on first use
+        self._ready: dict[tuple[float, float, float], np.ndarray | None] = {}
 
     def reaches(self, points: np.ndarray, axis: np.ndarray) -> bool:
         """Every point in turn (seeded by the previous answer), the tool axis along ``axis``."""
@@ -393,6 +413,41 @@ class ArmReach:
             if q is None:
                 return False
         return True
+
+    def _solver(self) -> Gen3Arm:
+        if self._arm is None:
+            self._arm = Gen3Arm(pb.connect(pb.DIRECT), self.config)
+        return self._arm
+
+    def ready_pose(self, bin_centre: np.ndarray, floor_z: float) -> np.ndarray | None:
+        """The env's ready pose: the cup straight down ``ready_height`` above the bin centre, from the Kinova home."""
+        key = (float(bin_centre[0]), float(bin_centre[1]), float(floor_z))
+        if key not in self._ready:
+            self._ready[key] = self._solver().ik(np.array([key[0], key[1], key[2] + self.ready_height]),
+                                                 np.array([0.0, 0.0, -1.0]), seed=self.seed)
+        return self._ready[key]
+
+    def confirms(self, points: np.ndarray, axis: np.ndarray, ready: np.ndarray | None) -> bool:
+        """The env's solver along ``points`` (the first from ``ready``, then from the Kinova home)."""
+        arm, points = self._solver(), np.asarray(points, dtype=np.float64)
+        for seed in (ready, self.seed):
+            q = None if seed is None else arm.ik(points[0], axis, seed=seed)
+            if q is not None and (len(points) == 1 or arm.cartesian_path(q, points[1:], axis) is not None):
+                return True
+        return False
+
+    def close(self) -> None:
+        if self._arm is not None:
+            if pb.isConnected(self._arm.client):
+                pb.disconnect(self._arm.client)
+            self._arm = None
+            self._ready.clear()
+
+    def __del__(self) -> None:  # best effort; the client is private to this object
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass
 
 
 class OraclePolicy(Policy):
@@ -510,10 +565,11 @@ class OraclePolicy(Policy):
         upright = normals[:, 2] >= np.cos(np.radians(tilt))
         return np.flatnonzero((grasp.seal >= c.seal_floor) & (grasp.collision > 0) & (grasp.worst < 1.0) & upright)
 
-    def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth) -> np.ndarray:
+    def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth,
+                   transport: bool = True) -> np.ndarray:
         """Tip positions the pick passes: pre-grasp, contact, straight up to the carrying height (the env's
-        rule: the held parcel's underside ``clearance`` above the rim and the rest of the pile), then over
-        to the drop zone."""
+        rule: the held parcel's underside ``clearance`` above the rim and the rest of the pile), then (with
+        ``transport``) over to the drop zone."""
         g = self.grasp
         others = [m.bounds[1, 2] for k, m in enumerate(truth.meshes) if k != parcel]
         rim = float(truth.obstacles_top)
@@ -522,6 +578,8 @@ class OraclePolicy(Policy):
         heights = np.arange(point[2], carry, self.config.reach_step)[1:]
         up = np.column_stack([np.full(len(heights) + 1, point[0]), np.full(len(heights) + 1, point[1]),
                               np.append(heights, carry)])
+        if not transport:
+            return np.vstack([point + g.pregrasp_distance * normal, point, up])
         # then over to the drop zone at that height, tool still on the approach axis (a tilted pick is
         # carried tilted; the env's detour round the base is not modelled, so this may only demote a pick)
         drop = np.array([g.drop_zone[0], g.drop_zone[1], max(g.drop_zone[2], carry)])
@@ -531,13 +589,48 @@ class OraclePolicy(Policy):
 
     def _reachable_first(self, order: np.ndarray, points: np.ndarray, normals: np.ndarray, owner: np.ndarray,
                          truth: GroundTruth) -> np.ndarray:
-        """The ranked candidates with the first one the arm reaches (``ArmReach``, checking at most
-        ``reach_checks``) moved to the front, and those found unreachable moved to the back."""
+        """The ranked candidates with the first one the arm reaches moved to the front, and those found
+        unreachable moved to the back.
+
+        First the fast check (``ArmReach.reaches``) on at most ``reach_checks`` in rank order. Where it refuses
+        them all, the cell's own IK (``ArmReach.confirms``) checks the first ``confirm_checks`` again, up to the
+        carrying height only: the fast check misses poses the cell reaches, and holds a tilted pick's axis over
+        to the drop zone, where the cell turns the tool down (the Table V grid's 10 such decisions were all
+        successes, 4 of them tilted 31-55 deg picks whose tilted transport no IK solves). Where that refuses too, the best candidate of each parcel not
+        yet checked, in rank order (the first checks usually cover one parcel: its many probes near the centre
+        of mass); proposing a pick known to be out of reach ended heap episodes on three `hover: ik` misses in a
+        row. If nothing is found, the ranking stands."""
+        c = self.config
+        lines = {}
+
+        def line(i: int) -> np.ndarray:
+            if i not in lines:
+                lines[i] = self._pick_line(points[i], normals[i], int(owner[i]), truth)
+            return lines[i]
+
+        def first(i: int, refused: Sequence[int]) -> np.ndarray:
+            rest = order[(order != i) & ~np.isin(order, refused)]
+            return np.concatenate([[i], rest, np.asarray(refused, dtype=order.dtype)])
+
+        checked = [int(i) for i in order[:c.reach_checks]]
         unreachable = []
-        for i in order[:self.config.reach_checks]:
-            if self.reach.reaches(self._pick_line(points[i], normals[i], int(owner[i]), truth), -normals[i]):
-                rest = order[(order != i) & ~np.isin(order, unreachable)]
-                return np.concatenate([[i], rest, np.asarray(unreachable, dtype=order.dtype)])
+        for i in checked:
+            if self.reach.reaches(line(i), -normals[i]):
+                return first(i, unreachable)
+            unreachable.append(i)
+        if not checked:
+            return order
+        ready = self.reach.ready_pose(truth.bin_centre, truth.floor_z)
+        for i in checked[:c.confirm_checks]:
+            if self.reach.confirms(self._pick_line(points[i], normals[i], int(owner[i]), truth, transport=False),
+                                   -normals[i], ready):
+                return first(i, [j for j in unreachable if j != i])
+        _, best = np.unique(owner[order], return_index=True)  # each parcel's best-ranked candidate
+        seen = set(owner[checked].tolist())
+        others = [int(i) for i in order[np.sort(best)] if int(owner[i]) not in seen]
+        for i in others[:c.reach_checks]:
+            if self.reach.reaches(line(i), -normals[i]):
+                return first(i, unreachable)
             unreachable.append(i)
         return order
 

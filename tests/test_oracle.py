@@ -3,6 +3,8 @@ of mass, and a ceiling that delivers what a perfect perception stack would."""
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -184,19 +186,61 @@ def test_oracle_sees_a_parcel_on_the_far_end_of_a_long_one_and_one_hanging_over_
 
 
 def test_oracle_reach_check_uses_the_cells_own_arm():
-    """The arm's numpy IK reaches the tote centre top-down from the floor to the carrying height, and not
-    a point 1.5 m from the base; the tool tip it solves for is where the arm's forward kinematics puts it."""
+    """Both checks reach the tote centre top-down from the floor to the carrying height, and not a point 1.5 m
+    from the base; the tool tip the numpy check solves for is where the arm's forward kinematics puts it, and
+    the env's solver's ready pose is the env's own (the cup straight down ``ready_height`` above the bin centre)."""
     from policies.oracle import ArmReach
 
     reach, spec = ArmReach(), BinSpec()
-    x, y = spec.center_xy
-    line = np.array([[x, y, spec.floor_z + z] for z in (0.05, 0.2, 0.45)])
-    down = np.array([0.0, 0.0, -1.0])
-    assert reach.reaches(line, down)
-    assert not reach.reaches(np.array([[1.5, 0.0, 0.3]]), down)
-    q = reach.kin.refine(reach.seed, line[1], down, reach.seed, reach.lower, reach.upper, reach.tol_p, reach.tol_a)
-    tip, axis = reach.kin.forward(q)[:2]
-    assert np.linalg.norm(tip - line[1]) < reach.tol_p and axis @ down > np.cos(reach.tol_a)
+    try:
+        x, y = spec.center_xy
+        line = np.array([[x, y, spec.floor_z + z] for z in (0.05, 0.2, 0.45)])
+        down = np.array([0.0, 0.0, -1.0])
+        far = np.array([[1.5, 0.0, 0.3]])
+        assert reach.reaches(line, down)
+        assert not reach.reaches(far, down)
+        q = reach.kin.refine(reach.seed, line[1], down, reach.seed, reach.lower, reach.upper, reach.tol_p, reach.tol_a)
+        tip, axis = reach.kin.forward(q)[:2]
+        assert np.linalg.norm(tip - line[1]) < reach.tol_p and axis @ down > np.cos(reach.tol_a)
+        ready = reach.ready_pose(np.asarray(spec.center_xy), spec.floor_z)
+        tip, axis = reach.kin.forward(ready)[:2]
+        np.testing.assert_allclose(tip, [x, y, spec.floor_z + EnvConfig().grasp.ready_height], atol=reach.tol_p)
+        assert axis @ down > np.cos(reach.tol_a)
+        assert reach.confirms(line, down, ready) and not reach.confirms(far, down, ready)
+    finally:
+        reach.close()
+
+
+def test_oracle_confirms_a_refused_pick_with_the_cells_ik_then_tries_the_other_parcels(monkeypatch):
+    """Candidates 0-2 lie on parcel 0, 3 and 4 on parcel 1, 5 on parcel 2; the fast check sees 3 of them. The
+    first it reaches is proposed; where it reaches none, the cell's IK confirms the first (a miss of the fast
+    check); where that refuses too, the best candidate of each other parcel is tried (3, not 4); where nothing
+    is reached, the ranking stands."""
+    from policies.oracle import OracleConfig
+
+    policy = OraclePolicy(OracleConfig(reach_checks=3, confirm_checks=1))
+    owner = np.array([0, 0, 0, 1, 1, 2])
+    points = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])  # the line of candidate i starts at x = i
+    normals = np.tile([0.0, 0.0, 1.0], (6, 1))
+    order = np.arange(6)
+    # z of the fake line marks a line without the transport: the cell's IK checks the pick up to the carrying
+    # height only (where a tilted transport does not solve, the cell turns the tool down)
+    monkeypatch.setattr(policy, "_pick_line", lambda point, normal, parcel, truth, transport=True:
+                        np.array([[point[0], 0.0, 0.0 if transport else 1.0]]))
+    monkeypatch.setattr(policy.reach, "ready_pose", lambda centre, floor_z: None)
+    truth = types.SimpleNamespace(bin_centre=np.zeros(2), floor_z=0.0)
+
+    def rank(fast: set[int], exact: set[int]) -> list[int]:
+        monkeypatch.setattr(policy.reach, "reaches", lambda line, axis: int(line[0, 0]) in fast)
+        monkeypatch.setattr(policy.reach, "confirms", lambda line, axis, ready: line[0, 2] == 1.0 and
+                            int(line[0, 0]) in exact)
+        return policy._reachable_first(order, points, normals, owner, truth).tolist()
+
+    assert rank({1, 4}, set()) == [1, 2, 3, 4, 5, 0]  # the first the fast check reaches; the refused one last
+    assert rank(set(), {0, 1}) == [0, 3, 4, 5, 1, 2]  # all refused: the cell's IK confirms the first
+    assert rank({3, 4, 5}, set()) == [3, 4, 5, 0, 1, 2]  # refused by both: parcel 1's best candidate
+    assert rank({4, 5}, set()) == [5, 4, 0, 1, 2, 3]  # parcel 1's best refused too: parcel 2's
+    assert rank(set(), set()) == [0, 1, 2, 3, 4, 5]  # nothing within reach: the ranking stands
 
 
 def test_oracle_predicts_the_gap_where_the_cup_rests_on_a_hull():
