@@ -126,6 +126,9 @@ class OracleConfig:
         if not 0.0 <= self.max_face_tilt_deg <= self.last_resort_face_tilt_deg <= 90.0:
             raise ValueError(f"OracleConfig needs 0 <= max_face_tilt_deg <= last_resort_face_tilt_deg <= 90, got "
                              f"{self.max_face_tilt_deg!r}, {self.last_resort_face_tilt_deg!r}")
+        if self.reach_checks < 1 or self.confirm_checks < 0:
+            raise ValueError(f"OracleConfig needs reach_checks >= 1 and confirm_checks >= 0, got {self.reach_checks!r}, "
+                             f"{self.confirm_checks!r}")
         if not 0.0 <= self.seal_floor <= self.min_seal <= 1.0:
             raise ValueError(f"OracleConfig needs 0 <= seal_floor <= min_seal <= 1, got {self.seal_floor!r}, "
                              f"{self.min_seal!r}")
@@ -383,8 +386,8 @@ class ArmReach:
     ``reaches``: the arm's own numpy kinematics (``Gen3Kinematics.refine``, the same damped least squares the
     env's IK refines with) at the mount, joint limits and IK tolerances of ``ArmConfig``, chained along the pick
     from the contact up to the carrying height (every ``step``), tool on the approach axis. Fast, and a local
-    solve from the Kinova home: it misses reachable poses (on the Table V grid, 8 decisions found none of their
-    40 checked candidates reachable, and the cell made the first one every time).
+    solve from the Kinova home: it misses reachable poses (on the Table V grid, 10 decisions found none of
+    their 40 checked candidates reachable, and the cell made the first one every time).
 
     ``confirms``: the env's own solver (``Gen3Arm.ik``: pybullet's null-space guesses at several cup yaws,
     refined, then the Kinova home; ``cartesian_path`` along the line) on a copy of the arm alone in a private
@@ -596,17 +599,14 @@ class OraclePolicy(Policy):
         them all, the cell's own IK (``ArmReach.confirms``) checks the first ``confirm_checks`` again, up to the
         carrying height only: the fast check misses poses the cell reaches, and holds a tilted pick's axis over
         to the drop zone, where the cell turns the tool down (the Table V grid's 10 such decisions were all
-        successes, 4 of them tilted 31-55 deg picks whose tilted transport no IK solves). Where that refuses too, the best candidate of each parcel not
-        yet checked, in rank order (the first checks usually cover one parcel: its many probes near the centre
-        of mass); proposing a pick known to be out of reach ended heap episodes on three `hover: ik` misses in a
-        row. If nothing is found, the ranking stands."""
+        successes, 4 of them picks tilted 31-55 deg whose tilted transport no IK solves). Where that refuses
+        too, the best candidate of each parcel not yet checked, in rank order (the first checks usually cover
+        one parcel: its many probes near the centre of mass); proposing a pick known to be out of reach ended
+        heap episodes on three `hover: ik` misses in a row. If nothing is found, the ranking stands."""
         c = self.config
-        lines = {}
 
-        def line(i: int) -> np.ndarray:
-            if i not in lines:
-                lines[i] = self._pick_line(points[i], normals[i], int(owner[i]), truth)
-            return lines[i]
+        def line(i: int, transport: bool = True) -> np.ndarray:
+            return self._pick_line(points[i], normals[i], int(owner[i]), truth, transport)
 
         def first(i: int, refused: Sequence[int]) -> np.ndarray:
             rest = order[(order != i) & ~np.isin(order, refused)]
@@ -622,8 +622,7 @@ class OraclePolicy(Policy):
             return order
         ready = self.reach.ready_pose(truth.bin_centre, truth.floor_z)
         for i in checked[:c.confirm_checks]:
-            if self.reach.confirms(self._pick_line(points[i], normals[i], int(owner[i]), truth, transport=False),
-                                   -normals[i], ready):
+            if self.reach.confirms(line(i, transport=False), -normals[i], ready):
                 return first(i, [j for j in unreachable if j != i])
         _, best = np.unique(owner[order], return_index=True)  # each parcel's best-ranked candidate
         seen = set(owner[checked].tolist())

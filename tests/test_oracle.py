@@ -317,3 +317,12 @@ def test_the_oracle_tool_probe_keeps_the_planners_clearance_between_true_surface
     probe = collision_scores(build_scene([box(extents, position)]), lip[None], np.array([[0.0, 0.0, 1.0]]),
                              physical_tool(SUCTION))
     assert probe[0] == (0.0 if blocked else 1.0)
+
+
+@pytest.mark.parametrize("field, value", [("reach_checks", 0), ("confirm_checks", -1), ("probe_spacing", 0.0),
+                                          ("min_seal", 1.5)])
+def test_a_wrong_oracle_config_value_is_refused_by_name(field, value):
+    from policies.oracle import OracleConfig
+
+    with pytest.raises(ValueError, match=field):
+        OracleConfig(**{field: value})
