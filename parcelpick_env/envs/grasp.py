@@ -740,15 +740,24 @@ class PickExecutor:
         turn, why_turn = self._turn_down(q0, pick, a_max)
         if turn is None:
             return None, why if why_turn is None else f"{why} (turned down: {why_turn})"
+        def chord_or_around(q: np.ndarray) -> tuple[Trajectory | None, str | None]:
+            rest, why_rest = self._carry_line(q, end, pick, a_max)
+            return (rest, None) if rest is not None else self._carry_around(q, end, pick, a_max, why_rest)
+
+        rest, why_rest = self._top_down_after(turn, pick, chord_or_around)
+        return (concatenate([turn, rest]), None) if rest is not None else (None, f"{why} (turned down: {why_rest})")
+
+    def _top_down_after(self, turn: Trajectory, pick: _Pick,
+                        solve: Callable[[np.ndarray], tuple[Trajectory | None, str | None]]
+                        ) -> tuple[Trajectory | None, str | None]:
+        """The rest of the carry after ``turn`` (``_turn_down``), solved from its end by ``solve`` with the tool
+        straight down; the carrying axis stays down when that solves, and is restored when it does not."""
         held = pick.carry_axis, pick.x_axis
         pick.carry_axis, pick.x_axis = np.array([0.0, 0.0, -1.0]), self.kin.tip_x(turn.q[-1])
-        rest, why_rest = self._carry_line(turn.q[-1], end, pick, a_max)
-        if rest is None:
-            rest, why_rest = self._carry_around(turn.q[-1], end, pick, a_max, why_rest)
+        rest, why = solve(turn.q[-1])
         if rest is None:
             pick.carry_axis, pick.x_axis = held
-            return None, f"{why} (turned down: {why_rest})"
-        return concatenate([turn, rest]), None
+        return rest, why
 
     def _turn_down(self, q0: np.ndarray, pick: _Pick, a_max: float, dt: float | None = None
                    ) -> tuple[Trajectory | None, str | None]:
@@ -818,11 +827,8 @@ class PickExecutor:
         turn, why_turn = self._turn_down(rise.q[-1], pick, a_max, dt)
         if turn is None:
             return None, why if why_turn is None else f"{why} (turned down at {turn_z:.2f} m: {why_turn})"
-        held = pick.carry_axis, pick.x_axis
-        pick.carry_axis, pick.x_axis = np.array([0.0, 0.0, -1.0]), self.kin.tip_x(turn.q[-1])
-        up, why_up = self._carry_line(turn.q[-1], end, pick, a_max, dt)
+        up, why_up = self._top_down_after(turn, pick, lambda q: self._carry_line(q, end, pick, a_max, dt))
         if up is None:
-            pick.carry_axis, pick.x_axis = held
             return None, f"{why} (turned down at {turn_z:.2f} m: {why_up})"
         return concatenate([rise, turn, up]), None
 
