@@ -5,6 +5,8 @@ Everything runs at 512 points with narrow layers and one torch thread (the CI bo
 
 from __future__ import annotations
 
+import warnings
+
 import diffusers
 import numpy as np
 import pytest
@@ -18,7 +20,9 @@ from policies.diffusion.config import LEGACY_SAMPLER, TIMESTEP_SPACINGS, Diffusi
 from policies.diffusion.metrics import topk_precision
 from policies.diffusion.model import build_model
 from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods, grid_sample
-from policies.diffusion.pointnet2 import fold_batchnorm
+from policies.diffusion import pointnet2
+from policies.diffusion.pointnet2 import FeaturePropagation, fold_batchnorm, gather
+from policies.diffusion import policy as diffusion_policy
 from policies.diffusion.policy import DiffusionSuctionPolicy
 from policies.diffusion.scheduler import DiffusionSchedule
 from policies.diffusion.synthetic import synthetic_scene
@@ -261,6 +265,42 @@ def test_folded_batchnorm_encoder_matches(cfg):
     assert torch.equal(twice, folded)  # idempotent: a policy built on a folded model folds nothing more
 
 
+def test_gather_picks_the_indexed_rows_of_each_cloud_in_the_batch():
+    values = torch.arange(2 * 5 * 3, dtype=torch.float32).reshape(2, 5, 3)
+    index = torch.tensor([[[4, 0], [1, 1]], [[0, 2], [3, 4]]])
+    out = gather(values, index)
+    assert out.shape == (2, 2, 2, 3)
+    for b in range(2):  # cloud b's rows only, never the other cloud's
+        assert torch.equal(out[b], values[b][index[b]])
+
+
+def test_chunked_inference_of_the_set_abstractions_matches_one_pass(cfg, monkeypatch):
+    batch = make_batch(cfg, seeds=(1, 2))
+    model = build_model(cfg)
+    model.train()
+    model.forward_train(batch)  # running statistics off their initial values
+    model.eval()
+    with torch.inference_mode():
+        whole = model.encode(batch)  # the tiny config's centres fit one chunk
+        monkeypatch.setattr(pointnet2, "INFERENCE_GROUP_ROWS", 3 * cfg.nsample)  # 3 centres a chunk, a short last one
+        chunked = model.encode(batch)
+    assert torch.allclose(whole, chunked, atol=1e-6), float((whole - chunked).abs().max())
+
+
+@pytest.mark.parametrize("with_skip", [True, False])
+def test_feature_propagation_is_the_mlp_of_the_interpolated_coarse_features_and_the_skip(with_skip):
+    """The coarse half of the first layer runs before the interpolation: the same as the textbook order."""
+    torch.manual_seed(0)
+    fp = FeaturePropagation([6 + (4 if with_skip else 0), 8, 5]).train()
+    coarse, skip = torch.randn(2, 7, 6), (torch.randn(2, 20, 4) if with_skip else None)
+    index = torch.randint(0, 7, (2, 20, 3))
+    weight = torch.softmax(torch.randn(2, 20, 3), dim=-1)
+    up = (coarse.unsqueeze(1).expand(-1, 20, -1, -1).gather(2, index.unsqueeze(-1).expand(-1, -1, -1, 6))
+          * weight.unsqueeze(-1)).sum(dim=2)
+    expected = fp.mlp(up if skip is None else torch.cat([up, skip], dim=-1))
+    assert torch.allclose(fp(skip, coarse, index, weight), expected, atol=1e-5)
+
+
 def test_ablation_configs_build_and_run():
     for cfg in (DiffusionConfig.tiny(inference_steps=2, use_visibility=False),
                 DiffusionConfig.tiny(inference_steps=2, use_normals=False, schedule="cosine", prediction="x0"),
@@ -332,6 +372,7 @@ def test_segment_size_and_encoder_levers_reach_the_networks():
     assert len(candidates.points) == 5
 
 
+@pytest.mark.filterwarnings("ignore:precision='bfloat16' on a CPU without")  # CI's host may emulate it
 def test_bfloat16_inference_ranks_like_float32_and_returns_float32_scores():
     cfg = DiffusionConfig.tiny(inference_steps=2, prediction="x0", map_loss_weight=0.0)
     model = build_model(cfg)
@@ -342,6 +383,18 @@ def test_bfloat16_inference_ranks_like_float32_and_returns_float32_scores():
     assert np.abs(np.sort(exact.scores) - np.sort(low.scores)).max() < 0.05
     with pytest.raises(ValueError, match="precision must be one of"):
         DiffusionSuctionPolicy(model=model, precision="float16")
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_bfloat16_warns_where_the_cpu_would_emulate_it(native, monkeypatch):
+    monkeypatch.setattr(diffusion_policy, "cpu_runs_bfloat16_natively", lambda: native)
+    model = build_model(DiffusionConfig.tiny())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        DiffusionSuctionPolicy(model=model, precision="bfloat16")
+        DiffusionSuctionPolicy(model=model, precision="float32")
+    emulated = [w for w in caught if "emulated" in str(w.message)]
+    assert len(emulated) == (0 if native else 1)
 
 
 def test_config_validation():

@@ -15,11 +15,21 @@ from policies.diffusion.config import DiffusionConfig
 from policies.diffusion.segment_inputs import segment_channels, segment_features
 
 
+# Grouped rows (centres x neighbours) an inference pass of a set abstraction takes at once: a few MB per layer, so
+# its intermediates stay in cache and the allocator reuses them instead of mapping fresh pages for every call.
+INFERENCE_GROUP_ROWS = 16384
+
+
 def gather(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """values (B, N, C), index (B, ...) -> (B, ..., C)."""
-    b = values.shape[0]
-    flat = index.reshape(b, -1, 1).expand(-1, -1, values.shape[-1])
-    return values.gather(1, flat).reshape(*index.shape, values.shape[-1])
+    """values (B, N, C), index (B, ...) -> (B, ..., C).
+
+    Rows are picked with ``index_select`` on the flattened batch: unlike ``Tensor.gather`` it copies whole
+    channel rows, not one expanded index per element."""
+    b, n, c = values.shape
+    flat = index.reshape(b, -1)
+    if b > 1:
+        flat = flat + n * torch.arange(b, device=index.device).unsqueeze(1)
+    return values.reshape(b * n, c).index_select(0, flat.reshape(-1)).reshape(*index.shape, c)
 
 
 class SharedMLP(nn.Sequential):
@@ -46,6 +56,8 @@ class SetAbstractionMSG(nn.Module):
 
     The first layer is linear, so it runs once per *input point* and is gathered afterwards:
     W [(p - c) / r, f] = (W_p p / r + W_f f) - W_p c / r. Same model, 5-10x fewer first-layer products.
+    Out of training (where BatchNorm uses running statistics, so each row is independent) the centres go through
+    in chunks of :data:`INFERENCE_GROUP_ROWS` grouped rows.
     """
 
     def __init__(self, in_channels: int, radii: Sequence[float], mlp: Sequence[int]):
@@ -66,13 +78,20 @@ class SetAbstractionMSG(nn.Module):
             per_point = xyz @ w_p.T if feats is None else xyz @ w_p.T + feats @ w_f.T  # (B, N, C1)
             if first.bias is not None:  # only after fold_batchnorm
                 per_point = per_point + first.bias
-            grouped = gather(per_point, groups[:, :, s]) - (new_xyz @ w_p.T).unsqueeze(2)  # (B, M, K, C1)
-            outs.append(rest(grouped).amax(dim=2))
+            centre_term = (new_xyz @ w_p.T).unsqueeze(2)  # (B, M, 1, C1)
+            m = centres.shape[1]
+            step = m if self.training else max(1, INFERENCE_GROUP_ROWS // groups.shape[-1])
+            pooled = [rest(gather(per_point, groups[:, a:a + step, s]) - centre_term[:, a:a + step]).amax(dim=2)
+                      for a in range(0, m, step)]  # (B, M, K, C1) -> (B, M, C)
+            outs.append(pooled[0] if len(pooled) == 1 else torch.cat(pooled, dim=1))
         return new_xyz, torch.cat(outs, dim=-1)
 
 
 class FeaturePropagation(nn.Module):
-    """Inverse-distance 3-NN interpolation from the coarse level, concatenated with the skip features, then MLP."""
+    """Inverse-distance 3-NN interpolation from the coarse level, concatenated with the skip features, then MLP.
+
+    Interpolation is linear, so the first layer's coarse half runs on the coarse points (4x fewer) and is
+    interpolated afterwards: W [sum_k w_k c_k, s] = sum_k w_k (W_c c_k) + W_s s. Same model, no concatenation."""
 
     def __init__(self, channels: Sequence[int]):
         super().__init__()
@@ -80,8 +99,19 @@ class FeaturePropagation(nn.Module):
 
     def forward(self, skip: torch.Tensor | None, coarse: torch.Tensor, index: torch.Tensor,
                 weight: torch.Tensor) -> torch.Tensor:
-        up = (gather(coarse, index) * weight.unsqueeze(-1)).sum(dim=2)
-        return self.mlp(up if skip is None else torch.cat([up, skip], dim=-1))
+        first: nn.Linear = self.mlp[0]
+        c = coarse.shape[-1]
+        projected = coarse @ first.weight[:, :c].T  # (B, M, C1)
+        up = gather(projected, index[..., 0]) * weight[..., :1]  # (B, N, C1), one neighbour at a time: no (B, N, 3, C1)
+        for k in range(1, index.shape[-1]):
+            up = up.addcmul_(gather(projected, index[..., k]), weight[..., k:k + 1])
+        if skip is not None:
+            up = up + skip @ first.weight[:, c:].T
+        if first.bias is not None:  # only after fold_batchnorm
+            up = up + first.bias
+        for layer in list(self.mlp)[1:]:  # (slicing would rebuild a SharedMLP from its modules)
+            up = layer(up)
+        return up
 
 
 def _w(c: int, width: float) -> int:

@@ -26,6 +26,12 @@ MIN_POINTS = 16  # below this a cloud cannot hold a suction candidate worth rank
 PRECISIONS: dict[str, torch.dtype] = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
+def cpu_runs_bfloat16_natively() -> bool:
+    """Whether oneDNN has bfloat16 matmul instructions here (AVX512-BF16 or AMX). Without them it emulates them:
+    on an AVX2-only host the paper preset's encoder took 2,485 ms in bfloat16 against 267 ms in float32."""
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 @dataclass
 class Trajectory:
     """The last denoising run, for replays: the denoised points and the score maps after each DDIM step."""
@@ -54,6 +60,9 @@ class DiffusionSuctionPolicy(Policy):
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.precision = precision
+        if precision == "bfloat16" and torch.device(device).type == "cpu" and not cpu_runs_bfloat16_natively():
+            warnings.warn("precision='bfloat16' on a CPU without AVX512-BF16 or AMX: its matmuls are emulated, "
+                          "about 10x slower than float32; use precision='float32' here")
         if num_threads is not None:
             torch.set_num_threads(int(num_threads))
         self.device = torch.device(device)
