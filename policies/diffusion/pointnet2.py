@@ -16,7 +16,7 @@ from policies.diffusion.segment_inputs import segment_channels, segment_features
 
 
 # Grouped rows (centres x neighbours) an inference pass of a set abstraction takes at once: a few MB per layer, so
-# its intermediates stay in cache and the allocator reuses them instead of mapping fresh pages for every call.
+# its intermediates stay in cache (4k-16k rows tie on the 2-core host; 32k is already 40% slower, benchmarks/RESULTS.md).
 INFERENCE_GROUP_ROWS = 16384
 
 
