@@ -8,6 +8,7 @@ import pytest
 
 from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
                             evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise)
+from fresh_process import in_fresh_process
 from parcelpick_env.camera.config import CameraConfig
 
 # Two parcels, a tiny camera and cloud, three attempts: a few seconds per episode on one core.
@@ -23,13 +24,9 @@ def _episodes(summary: dict) -> list[dict]:
 
 def test_local_and_ray_backends_give_identical_episodes(monkeypatch):
     monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
-    import ray
-
+    pytest.importorskip("ray")
     local = evaluate_clearance(ClearanceConfig(**TINY, workers=1, backend="local"), progress=False)
-    try:
-        remote = evaluate_clearance(ClearanceConfig(**TINY, workers=1, backend="ray"), progress=False)
-    finally:
-        ray.shutdown()
+    remote = in_fresh_process(evaluate_clearance, ClearanceConfig(**TINY, workers=1, backend="ray"), progress=False)
     assert _episodes(local) == _episodes(remote)
     (ep,) = local["episodes"]
     assert 1 <= ep["attempts"] <= 3 and 0 <= ep["successes"] <= ep["attempts"]

@@ -31,6 +31,7 @@ from dataset.torch_dataset import ParcelSuctionDataset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # spawned workers import the stand-in by name
 from dataset_synthetic import crash_after, crashing_annotate, synthetic_annotate  # noqa: E402
+from fresh_process import in_fresh_process  # noqa: E402
 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
@@ -290,7 +291,7 @@ def test_annotation_survives_another_simulator_closing(real_dataset):
 def test_ray_backend_matches_local(real_dataset, tmp_path):
     pytest.importorskip("ray")
     root, config = real_dataset
-    report = generate(tmp_path, config, workers=1, backend="ray", progress=False)
+    report = in_fresh_process(generate, tmp_path, config, workers=1, backend="ray", progress=False)
     assert report.scenes_generated == 2
     _assert_same_scenes(_all_arrays(root), _all_arrays(tmp_path))
 
