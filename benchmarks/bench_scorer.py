@@ -13,6 +13,7 @@ Prints a markdown table and the peak RSS.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import resource
 import sys
 import time
@@ -24,6 +25,7 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from parcelpick_env.envs.config import EnvConfig  # noqa: E402
 from parcelpick_env.scene.scene import BinSpec  # noqa: E402
 from parcelpick_env.suction.config import SuctionConfig  # noqa: E402
 from parcelpick_env.suction.geometry import O3D_INVALID_ID, build_scene  # noqa: E402
@@ -154,10 +156,17 @@ def main() -> None:
                                                                    cup_radius=BELLOWS_RADIUS))
     bellows.seal(points[:8], normals[:8], ids[:8])
     tips = points + 0.001 * normals
+    # The `physical` definition (labels, the oracle): the cell's 20 mm bellows cup, seated where its face first
+    # meets a hull, then seal, hold and tool; unit masses (the cost does not depend on them)
+    cell = SuctionScorer(meshes, coms, obstacles, dataclasses.replace(EnvConfig().suction, seal_model="bellows",
+                                                                      num_threads=args.threads),
+                         masses=np.ones(len(meshes)))
+    cell.physical(points[:8], normals[:8], ids[:8])
     rows = [
         ("seal (72 rim + 19 inner rays)", lambda: scorer.seal(points, normals, ids)),
         ("seal, bellows r=25 mm (91 rays, rim plane fit)", lambda: bellows.seal(points, normals, ids)),
         ("contact_seal, bellows r=25 mm (tips 1 mm off)", lambda: bellows.contact_seal(tips, -normals, ids)),
+        ("physical: face seat, bellows r=20 mm, hold, tool", lambda: cell.physical(points, normals, ids)),
         ("wrench", lambda: scorer.wrench(points, normals, ids)),
         ("collision (31 segments)", lambda: scorer.collision(points, normals)),
         ("score: all four + product", lambda: scorer.score(points, normals, ids, visibility)),
@@ -168,7 +177,7 @@ def main() -> None:
                                                                          num_threads=args.threads))
     results = {name: best_of(args.repeats, fn) for name, fn in rows}
     outputs = [result for _, _, result in results.values()]
-    seal, bellows_seal, contact, _, coll, scores = outputs[:6]
+    seal, bellows_seal, contact, _, _, coll, scores = outputs[:7]
 
     print(f"\nScene: {source}, {len(meshes)} parcels, {faces} parcel triangles; "
           f"{n} visible candidates; Open3D {o3d.__version__}, "

@@ -35,7 +35,9 @@ How it picks, per parcel, on the true meshes:
    ``pinned_parcels``: lifting them lifts or strikes it, so they wait even behind a parcel whose pick
    failed), then parcels not yet tried (a parcel whose pick failed, ``info['outcome']``, goes behind the
    untried ones for the rest of the episode), then parcels no neighbour's hull touches over their upper
-   half (``leaned_on``), then robust seals before ones within ``seal_margin`` of the threshold.
+   half (``leaned_on``), then robust seals before marginal ones: within ``seal_margin`` of the threshold, or
+   below it with the lip ``seal_standoff`` (1 mm) further out than its seat (a seal held across a mailer's
+   hull gap); a parcel's marginal candidates go best backed-off seal first.
 4. Reachability (``ArmReach``): the arm's own numpy IK, chained from the pre-grasp point through the
    contact up to the carrying height; the first ranked candidate it reaches is proposed, the unreachable
    ones checked go to the back (never out). Where it reaches none of the first ``reach_checks``, the env's
@@ -108,6 +110,10 @@ class OracleConfig:
     # the oracle would otherwise give up (invalid_action), the cause of every no-pick end on the stacked grid
     last_resort_face_tilt_deg: float = 85.0
     seal_margin: float = 0.05  # a seal this close to the threshold is a last resort: physics moves it by ~0.01
+    # ... and so is one that falls below the threshold with the lip this far further out than its seat: a seal held
+    # across a mailer's hull gap (2.6 mm of the 3 mm the leak closes) fell to 0 in the cell, whose seat lies about
+    # half a millimetre either way of the predicted one as the parcel settles under the cup (3 no_seal on the grids)
+    seal_standoff: float = 0.001  # m
     reach_checks: int = 40  # ranked candidates checked for reachability (IK along the pick) per decision
     # where all of those fail, this many of the first are checked again by the cell's own IK (slow, exact), and
     # if it refuses them too, the best candidate of each other parcel is checked in rank order (``_reachable_first``)
@@ -118,7 +124,7 @@ class OracleConfig:
         radii = np.asarray(self.probe_radii, dtype=np.float64)
         if radii.ndim != 1 or len(radii) == 0 or np.any(radii < 0) or not np.all(np.isfinite(radii)):
             raise ValueError(f"OracleConfig.probe_radii must be finite radii >= 0, got {self.probe_radii!r}")
-        for name in ("probe_spacing", "height_band", "retry_radius"):
+        for name in ("probe_spacing", "height_band", "retry_radius", "seal_standoff"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"OracleConfig.{name} must be > 0, got {getattr(self, name)!r}")
         if not 0.0 <= self.max_tilt_deg <= 90.0:
@@ -540,9 +546,9 @@ class OraclePolicy(Policy):
         visibility = np.ones(len(points), dtype=np.float32)  # the oracle sees every parcel whole
         scores = SuctionScores(seal=grasp.seal, wrench=wrench, collision=grasp.collision, visibility=visibility,
                                total=(grasp.seal * wrench * grasp.collision).astype(np.float32))
-        order = self._rank(points, normals, owner, grasp, truth)
+        order = self._rank(points, normals, owner, grasp, truth, scorer)
         if len(order) == 0:  # nothing within max_face_tilt_deg: steeper side faces as a last resort
-            order = self._rank(points, normals, owner, grasp, truth, self.config.last_resort_face_tilt_deg)
+            order = self._rank(points, normals, owner, grasp, truth, scorer, self.config.last_resort_face_tilt_deg)
         if len(order) == 0:
             raise ValueError("the oracle finds no admissible pick (seal, tool clearance and ring conditions all "
                              "hold) on any uncovered face")
@@ -646,15 +652,16 @@ class OraclePolicy(Policy):
         return out
 
     def _rank(self, points: np.ndarray, normals: np.ndarray, owner: np.ndarray, grasp: PhysicalGrasp,
-              truth: GroundTruth, max_face_tilt_deg: float | None = None) -> np.ndarray:
+              truth: GroundTruth, scorer: SuctionScorer, max_face_tilt_deg: float | None = None) -> np.ndarray:
         """Indices of the admissible candidates: free parcels before pinned ones (``pinned_parcels``; a
         parcel dropped back onto another must come off it first, even though its pick failed), parcels not
         yet tried before tried ones, approaches not yet failed before failed ones (a point within
         ``retry_radius`` and ``retry_angle_deg`` of a failed pick), parcels not leaned on (``leaned_on``)
-        first, robust seals before ones
-        within ``seal_margin`` of the threshold; then sound picks (seal at least ``min_seal``, ring ratios
+        first, robust seals before marginal ones (within ``seal_margin`` of the threshold, or below it with the
+        lip ``seal_standoff`` further out); then sound picks (seal at least ``min_seal``, ring ratios
         within the carry's load target) before weaker ones, level candidates before tilted ones, highest
-        parcels first, central ones first, and small lever arms first."""
+        parcels first, central ones first, among a parcel's marginal candidates the best seal backed off first,
+        and small lever arms first."""
         c = self.config
         admissible = self._admissible(grasp, normals, max_face_tilt_deg)
         if len(admissible) == 0:
@@ -678,7 +685,12 @@ class OraclePolicy(Policy):
         pinned = pinned_parcels(truth, contacts)
         leaned = leaned_on(truth, contacts)
         sound = (grasp.seal[admissible] >= c.min_seal) & (grasp.worst[admissible] <= self.load_target)
-        marginal = grasp.seal[admissible] < c.seal_floor + c.seal_margin
+        # the seal with the lip seal_standoff further out than its seat: what the last millimetre is worth
+        backed_off = scorer.physical(points[admissible], normals[admissible], parcels, self.cup,
+                                     standoff=c.seal_standoff).seal
+        marginal = (grasp.seal[admissible] < c.seal_floor + c.seal_margin) | (backed_off < c.seal_floor)
+        # among a parcel's last-resort candidates, the one whose seal depends least on the last millimetre first
+        fragile = np.where(marginal, -backed_off, 0.0)
         # np.lexsort sorts by the last key first
-        return admissible[np.lexsort((lever, centrality[parcels], -tier[parcels], ~level, ~sound, marginal,
+        return admissible[np.lexsort((lever, fragile, centrality[parcels], -tier[parcels], ~level, ~sound, marginal,
                                       leaned[parcels], repeated, tried[parcels], pinned[parcels]))]

@@ -234,6 +234,25 @@ def test_torsion_condition_fails_off_the_tilt_axis_with_a_slippery_lip():
         env.close()
 
 
+def test_a_vertical_cup_on_a_tilted_face_is_seated_where_its_rim_touches_and_seals_by_the_tilt():
+    """A box on a slab tilted 12 deg, picked straight down at its top's centre: the rigid cup stops on its uphill
+    rim, 4.3 mm above where the axis meets the hull, so the lip is seated there (not short of it by the collision
+    margin, which read as a 2-3 mm gap) and the bellows seals by the tilt alone, 1 - (12/25)^2 = 0.77."""
+    tilt = math.radians(12.0)
+    slab = PlacedBox((0.40, 0.40, 0.04), 1.0, tilt=tilt, center=(0.0, 0.0, 0.10))
+    env = make(BoxScene([slab.resting_on_top((0.30, 0.30, 0.04), 0.5)], fixtures=[slab]))
+    try:
+        env.reset(seed=0)
+        ps = env.scene.parcels[0]
+        R = np.asarray(pb.getMatrixFromQuaternion(ps.orientation.tolist())).reshape(3, 3)
+        top = ps.position + R @ np.array([0.0, 0.0, 0.02])
+        res = env.executor.attempt(env.scene, top, np.array([0.0, 0.0, 1.0]))
+        assert res.seal == pytest.approx(1 - (12 / 25) ** 2, abs=0.03)
+        assert res.outcome == "success"
+    finally:
+        env.close()
+
+
 def test_held_parcel_lifted_into_a_bar_is_a_collision_naming_the_move_and_body():
     bar = PlacedBox((0.10, 0.40, 0.04), 1.0, center=(0.12, 0.0, 0.14))  # 2 cm above the box's far end
     env = make(BoxScene([PlacedBox((0.40, 0.20, 0.10), 0.5)], fixtures=[bar]))

@@ -270,6 +270,40 @@ def test_oracle_predicts_the_gap_where_the_cup_rests_on_a_hull():
     assert grasp.ratios.shape == (2, 6) and grasp.worst[0] < 0.2  # 0.5 kg on a sound seal hangs easily
 
 
+def test_oracle_puts_a_seal_held_across_a_hull_gap_behind_a_lower_robust_one():
+    """A tray whose 2.4 mm rims the hull bridges seals at 1 - (2.4/3)^2 = 0.36, above the threshold and its
+    margin, but with the lip 1 mm further out (``seal_standoff``) the 3.4 mm gap no longer closes: it owes its
+    seal to the last millimetre (the cell found 0 on three such mailers). A lower carton tilted 15 deg, picked
+    straight down, seals by the tilt at 1 - (15/25)^2 = 0.64 and keeps 0.64 (1 - (1/3)^2) = 0.57 backed off.
+    Neither is a sound pick, so the higher tray used to come first; now the carton does."""
+    import trimesh
+
+    from policies.oracle import GroundTruth, truth_scorer
+
+    def box(extents, centre):
+        return trimesh.creation.box(extents=extents).apply_translation(centre)
+
+    tilt = np.radians(15.0)
+    carton = box((0.20, 0.20, 0.03), (0.0, 0.0, 0.0)).apply_transform(
+        trimesh.transformations.rotation_matrix(tilt, [1, 0, 0])).apply_translation((-0.15, 0.0, 0.02))
+    tray = trimesh.util.concatenate([box((0.20, 0.20, 0.04), (0.15, 0.0, 0.02)),
+                                     box((0.02, 0.20, 0.0024), (0.06, 0.0, 0.0412)),
+                                     box((0.02, 0.20, 0.0024), (0.24, 0.0, 0.0412))])
+    truth = GroundTruth(meshes=[carton, tray], coms=np.array([[-0.15, 0.0, 0.02], [0.15, 0.0, 0.02]]),
+                        masses=np.array([0.5, 0.5]), obstacles=BinSpec().meshes(), bin_centre=np.zeros(2),
+                        obstacles_top=0.3)
+    carton_top = np.array([-0.15, 0.0, 0.02]) + 0.015 * np.array([0.0, -np.sin(tilt), np.cos(tilt)])
+    points = np.array([carton_top, [0.15, 0.0, 0.04]])  # each top's centre, on the true mesh, straight down
+    normals = np.tile([0.0, 0.0, 1.0], (2, 1))
+    scorer, oracle = truth_scorer(truth, SUCTION), OraclePolicy()
+    grasp = scorer.physical(points, normals, np.arange(2), oracle.cup)
+    backed_off = scorer.physical(points, normals, np.arange(2), oracle.cup, standoff=oracle.config.seal_standoff)
+    np.testing.assert_allclose(grasp.seal, [1 - 0.6**2, 1 - 0.8**2], atol=0.02)
+    np.testing.assert_allclose(backed_off.seal, [(1 - 0.6**2) * (1 - (1 / 3) ** 2), 0.0], atol=0.02)
+    assert grasp.seal.min() > oracle.config.seal_floor + oracle.config.seal_margin  # not marginal by the old rule
+    assert list(oracle._rank(points, normals, np.arange(2), grasp, truth, scorer)) == [0, 1]
+
+
 def test_leaned_approaches_tilt_towards_the_bin_centre_by_the_asked_angle():
     """Fallback for a parcel against a wall: the same point, approached off its normal, leaning inwards."""
     from policies.oracle import leaned_approaches

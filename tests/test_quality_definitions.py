@@ -8,15 +8,19 @@ conditions by hand.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
+import trimesh
 from meshes import box, horizontal_cylinder, tilted_plane
 
 from parcelpick_env.assets.parcel import ParcelAsset
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.suction.config import SuctionConfig
+from parcelpick_env.suction.geometry import build_scene
+from parcelpick_env.suction.physical import hull_seats, lip_face
 from parcelpick_env.suction.quality import (
     PAPER_LABELS,
     SUCTIONNET_EVALUATOR,
@@ -183,6 +187,39 @@ def test_physical_seal_below_the_env_threshold_holds_nothing():
     tube = horizontal_cylinder(0.012)
     scores = physical(scene_of(tube, 0.3, centre=(0, 0, 0.012)), (0, 0, 0.024))
     assert float(scores.seal[0]) == 0.0 and float(scores.quality[0]) == 0.0
+
+
+def physical_seal(scene: Scene, point, object_id: int = 0) -> float:
+    scorer = definition_scorer("physical", scene)
+    return float(scorer.physical(np.array([point], float), UP[None], np.array([object_id])).seal[0])
+
+
+def test_a_cup_coming_down_on_a_tilted_face_seats_where_its_uphill_rim_touches():
+    """A vertical cup over a face tilted 15 deg stops when its uphill rim meets the hull, r tan 15 deg = 5.4 mm
+    above where the axis meets it, and seals by the tilt alone: 1 - (15/25)^2 = 0.64. Seated on the axis, the rim
+    would be pressed 5.4 mm in and the stroke would cost 1 - 0.536^2 more (0.46)."""
+    tilt = math.radians(15.0)
+    mesh = box((0.3, 0.2, 0.1), (0, 0, 0)).apply_transform(trimesh.transformations.rotation_matrix(tilt, [1, 0, 0]))
+    centre = np.array([0.0, 0.0, 0.08])
+    scene = scene_of(mesh, 0.5, centre=centre)
+    top = centre + 0.05 * np.array([0.0, -math.sin(tilt), math.cos(tilt)])  # where the vertical axis meets the face
+    face = lip_face(definition_scorer("physical", scene).config)
+    tips, own = hull_seats(build_scene([scene.parcels[0].world_mesh().convex_hull]), top[None], UP[None],
+                           np.array([0]), face)
+    assert own[0] and tips[0, 2] - top[2] == pytest.approx(0.020 * math.tan(tilt), abs=3e-4)
+    assert physical_seal(scene, top) == pytest.approx(1 - (15 / 25) ** 2, abs=0.02)
+
+
+def test_a_cup_whose_face_meets_an_overhanging_neighbour_first_lands_there():
+    """A plank 3 cm above a box's top overhangs its edge by 2.5 cm. With the axis 1.5 cm clear of the plank's
+    edge, the rim of the 20 mm lip still meets the plank first: the cup lands there and the box gets no seal
+    (seated on the axis, it sealed the box at 1.0). 4.5 cm clear, the lip seats on the box."""
+    low = scene_of(box((0.2, 0.2, 0.1), (0, 0, 0)), 0.5, centre=(0, 0, 0.05))
+    plank = scene_of(box((0.2, 0.2, 0.02), (0, 0, 0)), 0.5, centre=(0.175, 0, 0.14)).parcels[0]
+    plank.object_id = 1
+    scene = dataclasses.replace(low, parcels=low.parcels + [plank])
+    assert physical_seal(scene, (0.03, 0, 0.1)) > 0.95  # the lip's face clears the plank (x <= 0.05 < 0.075)
+    assert physical_seal(scene, (0.06, 0, 0.1)) == 0.0  # its rim reaches x = 0.08, under the plank
 
 
 def test_collision_on_bin_walls_counts_except_for_suctionnet():

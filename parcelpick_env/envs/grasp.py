@@ -46,6 +46,8 @@ from parcelpick_env.sim.simulator import Simulator
 from parcelpick_env.suction.config import SuctionConfig
 from parcelpick_env.suction.cup import (CONDITIONS, Contacts, HoldMonitor, ToolState, contact_forces, mesh_inertia,
                                         suction_ring_ratios)
+from parcelpick_env.suction.geometry import tangent_frames
+from parcelpick_env.suction.physical import lip_face
 from parcelpick_env.suction.scorer import SuctionScorer
 
 __all__ = ["OUTCOMES", "CONDITIONS", "MOVES", "Failure", "MoveReport", "PickResult", "PickExecutor",
@@ -210,6 +212,7 @@ class PickExecutor:
         self.kin = arm.kin
         self.planner = arm.planner
         self._contact_config = dataclasses.replace(suction, seal_model="bellows")  # the physical cup's seal
+        self._lip_face = lip_face(self._contact_config)  # (K, 2): where the cup's face can first touch
         self._trace: list[dict[str, Any]] = []
         self._next_trace = 0.0
         self._held: int | None = None
@@ -547,18 +550,26 @@ class PickExecutor:
         return self._report("seal", steps=res.steps, t_start=t0)
 
     def _seated_lip(self, body: int, tip: np.ndarray, axis: np.ndarray) -> np.ndarray:
-        """Where the lip sits on the parcel's collision hull along the cup axis.
+        """Where the lip sits on the parcel's collision hull along the cup axis: as far along it as the
+        cup's face (``lip_face``: rim and disk) goes before its first point meets the hull.
 
         The rigid cup and the hull's collision margin leave the lip frame 2-3 mm short of the hull
         at rest (numerics, not a physical gap); the bellows lip lies on the hull. What remains
         between the hull and the true mesh (a mailer's wrinkles) is the real gap the seal judges.
+        The face, not the axis alone: on a hull tilted to the cup the uphill rim touches first, and
+        the axis meets the hull further down (7 mm on a mailer's wrinkle tilted 17 deg), beyond the
+        band, so the margin's 2-3 mm stayed in the seal as a gap (0.006 there; 0.54 seated).
         """
-        hits = p.rayTest((tip - 0.05 * axis).tolist(), (tip + LIP_SEAT_BAND * axis).tolist(),
-                         physicsClientId=self.sim.client)
-        if not hits or hits[0][0] != body:
+        u, w = tangent_frames(-axis[None])
+        starts = tip + self._lip_face[:, :1] * u + self._lip_face[:, 1:] * w
+        hits = p.rayTestBatch((starts - 0.05 * axis).tolist(), (starts + LIP_SEAT_BAND * axis).tolist(),
+                              physicsClientId=self.sim.client)
+        on_body = [k for k, hit in enumerate(hits) if hit[0] == body]
+        if not on_body:
             return tip
-        seat = np.asarray(hits[0][3]) + self.sim.config.collision_margin * axis
-        return seat if abs(float((seat - tip) @ axis)) <= LIP_SEAT_BAND else tip
+        depth = (np.array([hits[k][3] for k in on_body]) - starts[on_body]) @ axis
+        shift = float(depth.min()) + self.sim.config.collision_margin
+        return tip + shift * axis if abs(shift) <= LIP_SEAT_BAND else tip
 
     def _seal_at(self, parcel: ParcelState, tip: np.ndarray, axis: np.ndarray
                  ) -> tuple[float, np.ndarray | None, str | None]:
