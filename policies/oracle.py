@@ -686,8 +686,8 @@ class OraclePolicy(Policy):
         leaned = leaned_on(truth, contacts)
         sound = (grasp.seal[admissible] >= c.min_seal) & (grasp.worst[admissible] <= self.load_target)
         # the seal with the lip seal_standoff further out than its seat: what the last millimetre is worth
-        backed_off = scorer.physical(points[admissible], normals[admissible], parcels, self.cup,
-                                     standoff=c.seal_standoff).seal
+        backed_off = scorer.contact_seal(grasp.seats[admissible] + c.seal_standoff * normals[admissible],
+                                         -normals[admissible], parcels).quality
         marginal = (grasp.seal[admissible] < c.seal_floor + c.seal_margin) | (backed_off < c.seal_floor)
         # among a parcel's last-resort candidates, the one whose seal depends least on the last millimetre first
         fragile = np.where(marginal, -backed_off, 0.0)

@@ -297,9 +297,9 @@ def test_oracle_puts_a_seal_held_across_a_hull_gap_behind_a_lower_robust_one():
     normals = np.tile([0.0, 0.0, 1.0], (2, 1))
     scorer, oracle = truth_scorer(truth, SUCTION), OraclePolicy()
     grasp = scorer.physical(points, normals, np.arange(2), oracle.cup)
-    backed_off = scorer.physical(points, normals, np.arange(2), oracle.cup, standoff=oracle.config.seal_standoff)
+    backed_off = scorer.contact_seal(grasp.seats + oracle.config.seal_standoff * normals, -normals, np.arange(2))
     np.testing.assert_allclose(grasp.seal, [1 - 0.6**2, 1 - 0.8**2], atol=0.02)
-    np.testing.assert_allclose(backed_off.seal, [(1 - 0.6**2) * (1 - (1 / 3) ** 2), 0.0], atol=0.02)
+    np.testing.assert_allclose(backed_off.quality, [(1 - 0.6**2) * (1 - (1 / 3) ** 2), 0.0], atol=0.02)
     assert grasp.seal.min() > oracle.config.seal_floor + oracle.config.seal_margin  # not marginal by the old rule
     assert list(oracle._rank(points, normals, np.arange(2), grasp, truth, scorer)) == [0, 1]
 

@@ -51,6 +51,7 @@ class PhysicalGrasp:
     seal: np.ndarray  # (N,) bellows contact seal where the cup comes to rest on the parcel's hull
     ratios: np.ndarray  # (N, 6) Dex-Net ring ratios hanging still at that seal's pull (cup.CONDITIONS order)
     collision: np.ndarray  # (N,) 1 if the physical tool along n clears every hull, the bin and the floor
+    seats: np.ndarray  # (N, 3) where the lip comes to rest (``hull_seats``; the candidate point if not on its parcel)
 
     @property
     def worst(self) -> np.ndarray:

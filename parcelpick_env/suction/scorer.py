@@ -127,15 +127,11 @@ class SuctionScorer:
         return ContactSeal.concatenate(parts) if len(parts) != 1 else parts[0]
 
     def physical(self, points: np.ndarray, normals: np.ndarray, object_ids: np.ndarray,
-                 cup: CupSpec = CupSpec(), standoff: float = 0.0) -> PhysicalGrasp:
+                 cup: CupSpec = CupSpec()) -> PhysicalGrasp:
         """What the cell will find at each candidate, hanging still (``suction/physical.py``): the bellows seal
         where the cup rests on the parcel's hull, the ring ratios of the real mass at that seal's pull, and the
         physical tool's clearance against the hulls and obstacles. Needs ``seal_model="bellows"`` (the env's
-        cup) and ``masses``; ids < 0 get seal 0, no collision clearance and infinite ratios.
-
-        ``standoff`` (m) holds the lip that much further out along ``n`` than its seat: a probe of how much a
-        seal owes to the last millimetre (the cell's seat moves by about that as the parcel settles under the
-        cup; a seal held across a mailer's hull gap falls from 0.27 to 0 over 0.5 mm)."""
+        cup) and ``masses``; ids < 0 get seal 0, no collision clearance and infinite ratios."""
         if self.config.seal_model != "bellows" or self.masses is None:
             raise ValueError("physical scores need SuctionConfig(seal_model='bellows') (the env's cup) and the "
                              "parcels' masses")
@@ -151,13 +147,12 @@ class SuctionScorer:
             seal = np.zeros(len(p))
             ratios = np.full((len(p), 6), np.inf)
             if np.any(valid):
-                contact = bellows_seal(self._seal_scene, tips[valid] + standoff * n[valid], -n[valid], ids[valid],
-                                       measure_gap=True)
+                contact = bellows_seal(self._seal_scene, tips[valid], -n[valid], ids[valid], measure_gap=True)
                 seal[valid] = np.where(own[valid], contact.quality, 0.0)
                 ratios[valid] = hanging_ratios(tips[valid], -n[valid], self.coms[ids[valid]], self.masses[ids[valid]],
                                                seal[valid], self.config, cup)
             collision = collision_scores(self._hull_scene, p, n, physical_tool(self.config))
-            parts.append(PhysicalGrasp(seal=seal.astype(np.float32), ratios=ratios,
+            parts.append(PhysicalGrasp(seal=seal.astype(np.float32), ratios=ratios, seats=tips,
                                        collision=np.where(valid, collision, 0.0).astype(np.float32)))
         return PhysicalGrasp.concatenate(parts) if len(parts) != 1 else parts[0]
 
