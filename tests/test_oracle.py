@@ -7,6 +7,7 @@ import types
 
 import numpy as np
 import pytest
+import trimesh
 from scipy.spatial.transform import Rotation
 
 from parcelpick_env.camera.config import CameraConfig
@@ -243,26 +244,32 @@ def test_oracle_confirms_a_refused_pick_with_the_cells_ik_then_tries_the_other_p
     assert rank(set(), set()) == [0, 1, 2, 3, 4, 5]  # nothing within reach: the ranking stands
 
 
+def carton_and_tray(carton: trimesh.Trimesh, rim_height: float):
+    """Ground truth of ``carton`` (at x = -0.15, 0.5 kg) beside a 20 x 20 x 4 cm tray on the floor at x = 0.15 whose
+    two 2 cm rims, ``rim_height`` tall, the convex hull bridges; the tray's top centre is (0.15, 0, 0.04)."""
+    from policies.oracle import GroundTruth
+
+    def box(extents, centre):
+        return trimesh.creation.box(extents=extents).apply_translation(centre)
+
+    rim_z = 0.04 + rim_height / 2
+    tray = trimesh.util.concatenate([box((0.20, 0.20, 0.04), (0.15, 0.0, 0.02)),
+                                     box((0.02, 0.20, rim_height), (0.06, 0.0, rim_z)),
+                                     box((0.02, 0.20, rim_height), (0.24, 0.0, rim_z))])
+    return GroundTruth(meshes=[carton, tray], coms=np.array([carton.centroid, [0.15, 0.0, 0.02]]),
+                       masses=np.array([0.5, 0.5]), obstacles=BinSpec().meshes(), bin_centre=np.zeros(2),
+                       obstacles_top=0.3)
+
+
 def test_oracle_predicts_the_gap_where_the_cup_rests_on_a_hull():
     """The cup comes to rest on the parcel's convex hull (what physics collides): on a plain carton that
     is its true top (a sound seal); on a tray whose 1 cm rims the hull bridges, the lip hovers 1 cm above
     the true floor of the tray (no seal, as the env's contact seal will find)."""
-    import trimesh
 
-    from policies.oracle import GroundTruth, truth_scorer
+    from policies.oracle import truth_scorer
 
-    def box(extents, centre):
-        mesh = trimesh.creation.box(extents=extents)
-        mesh.apply_translation(centre)
-        return mesh
-
-    carton = box((0.20, 0.20, 0.05), (-0.15, 0.0, 0.025))
-    tray = trimesh.util.concatenate([box((0.20, 0.20, 0.04), (0.15, 0.0, 0.02)),
-                                     box((0.02, 0.20, 0.01), (0.06, 0.0, 0.045)),
-                                     box((0.02, 0.20, 0.01), (0.24, 0.0, 0.045))])
-    truth = GroundTruth(meshes=[carton, tray], coms=np.array([[-0.15, 0.0, 0.025], [0.15, 0.0, 0.02]]),
-                        masses=np.array([0.5, 0.5]), obstacles=BinSpec().meshes(), bin_centre=np.zeros(2),
-                        obstacles_top=0.3)
+    truth = carton_and_tray(trimesh.creation.box(extents=(0.20, 0.20, 0.05)).apply_translation((-0.15, 0.0, 0.025)),
+                            rim_height=0.01)
     points = np.array([[-0.15, 0.0, 0.05], [0.15, 0.0, 0.04]])  # each top's centre, on the true mesh
     normals = np.tile([0.0, 0.0, 1.0], (2, 1))
     grasp = truth_scorer(truth, SUCTION).physical(points, normals, np.arange(2), EnvConfig().grasp.cup)
@@ -276,22 +283,13 @@ def test_oracle_puts_a_seal_held_across_a_hull_gap_behind_a_lower_robust_one():
     seal to the last millimetre (the cell found 0 on three such mailers). A lower carton tilted 15 deg, picked
     straight down, seals by the tilt at 1 - (15/25)^2 = 0.64 and keeps 0.64 (1 - (1/3)^2) = 0.57 backed off.
     Neither is a sound pick, so the higher tray used to come first; now the carton does."""
-    import trimesh
 
-    from policies.oracle import GroundTruth, truth_scorer
-
-    def box(extents, centre):
-        return trimesh.creation.box(extents=extents).apply_translation(centre)
+    from policies.oracle import truth_scorer
 
     tilt = np.radians(15.0)
-    carton = box((0.20, 0.20, 0.03), (0.0, 0.0, 0.0)).apply_transform(
+    carton = trimesh.creation.box(extents=(0.20, 0.20, 0.03)).apply_transform(
         trimesh.transformations.rotation_matrix(tilt, [1, 0, 0])).apply_translation((-0.15, 0.0, 0.02))
-    tray = trimesh.util.concatenate([box((0.20, 0.20, 0.04), (0.15, 0.0, 0.02)),
-                                     box((0.02, 0.20, 0.0024), (0.06, 0.0, 0.0412)),
-                                     box((0.02, 0.20, 0.0024), (0.24, 0.0, 0.0412))])
-    truth = GroundTruth(meshes=[carton, tray], coms=np.array([[-0.15, 0.0, 0.02], [0.15, 0.0, 0.02]]),
-                        masses=np.array([0.5, 0.5]), obstacles=BinSpec().meshes(), bin_centre=np.zeros(2),
-                        obstacles_top=0.3)
+    truth = carton_and_tray(carton, rim_height=0.0024)
     carton_top = np.array([-0.15, 0.0, 0.02]) + 0.015 * np.array([0.0, -np.sin(tilt), np.cos(tilt)])
     points = np.array([carton_top, [0.15, 0.0, 0.04]])  # each top's centre, on the true mesh, straight down
     normals = np.tile([0.0, 0.0, 1.0], (2, 1))
