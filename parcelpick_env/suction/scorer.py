@@ -139,11 +139,12 @@ class SuctionScorer:
         object_ids = self._object_ids(object_ids, len(points))
         if self._hull_scene is None:
             self._hull_scene = build_scene([m.convex_hull for m in self.meshes] + self.obstacles)
+        face = lip_face(self.config)
         parts = []
         for s in _batch_slices(len(points)):
             p, n, ids = points[s], normals[s], object_ids[s]
             valid = ids >= 0
-            tips, own = hull_seats(self._hull_scene, p, n, ids, lip_face(self.config), self.config.num_threads)
+            tips, own = hull_seats(self._hull_scene, p, n, ids, face, self.config.num_threads)
             seal = np.zeros(len(p))
             ratios = np.full((len(p), 6), np.inf)
             if np.any(valid):
