@@ -58,6 +58,9 @@ class ClearanceConfig:
     record_dir: str | None = None
     checkpoint: str | None = None
     max_attempts: int | None = None
+    # the cell's deployment check: every policy that ranks candidates from the camera acts on its best one whose
+    # physical tool is clear of the observed scene (policies/tool_check.py); the oracle checks the true scene itself
+    tool_check: bool = True
     env_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -162,6 +165,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
 
     import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
     from policies.registry import make_policy, obs_mode_of
+    from policies.tool_check import ToolCheckedPolicy, tool_check_refusal
 
     cfg = task.config
     env_kwargs = dict(cfg.env_kwargs, object_set=task.objects, layout=task.layout, num_parcels=cfg.num_parcels)
@@ -171,6 +175,8 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
     policy_kwargs = {"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}
     policy = make_policy(cfg.policy, **policy_kwargs)
+    if cfg.tool_check and tool_check_refusal(policy) is None:
+        policy = ToolCheckedPolicy(policy)
 
     start = time.perf_counter()
     env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads
@@ -212,7 +218,7 @@ def _choose_action(policy, obs, info, shape) -> np.ndarray:
 def _log_policy_extras(env, policy) -> None:
     """Put the Diffusion-Suction denoising trajectory of the first attempt into the replay."""
     recorder = getattr(env, "recorder", None)
-    trajectory = getattr(policy, "last_trajectory", None)
+    trajectory = getattr(getattr(policy, "inner", policy), "last_trajectory", None)  # under the tool check too
     if recorder is not None and trajectory is not None and hasattr(recorder, "log_denoising"):
         recorder.log_denoising(trajectory.points, trajectory.maps)
 
@@ -304,7 +310,16 @@ def evaluate_clearance(config: ClearanceConfig, progress: bool = True) -> dict[s
     summary = summarise(results)
     summary["episodes"] = [asdict(r) for r in results]
     summary["config"] = {k: v for k, v in asdict(config).items()}
+    summary["tool_check"] = tool_check_applies(config)
     return summary
+
+
+def tool_check_applies(config: ClearanceConfig) -> bool:
+    """Whether the episodes ran with the tool check: asked for, and the policy is one it wraps (not the oracle)."""
+    from policies.registry import policy_class
+    from policies.tool_check import tool_check_refusal
+
+    return config.tool_check and tool_check_refusal(policy_class(config.policy)) is None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -321,6 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--backend", default="local", choices=BACKENDS)
     p.add_argument("--ray-address", default=None, help="Ray cluster address, e.g. 'auto'; default: local Ray")
+    p.add_argument("--no-tool-check", dest="tool_check", action="store_false",
+                   help="act on the policy's top candidate as ranked, without the cell's check that the physical "
+                        "tool (cup, flange, wrist) is clear of the observed scene (policies/tool_check.py)")
     p.add_argument("--record", default=None, metavar="DIR", help="write one rerun .rrd replay per episode here")
     p.add_argument("--out", default=None, help="write the summary JSON here")
     return p
@@ -344,13 +362,14 @@ def main(argv: list[str] | None = None) -> int:
                                  episodes=args.episodes, num_parcels=args.parcels, seed=args.seed,
                                  workers=args.workers, backend=args.backend, ray_address=args.ray_address,
                                  record_dir=args.record, checkpoint=args.checkpoint,
-                                 max_attempts=args.max_attempts)
+                                 max_attempts=args.max_attempts, tool_check=args.tool_check)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     summary = evaluate_clearance(config)
     print(f"\nClosed-loop clearance, policy {config.policy!r}: R_grasp / R_object (%)\n")
     print(format_table(summary, config.objects, config.layouts))
+    print("Tool check (policies/tool_check.py): " + ("on" if summary["tool_check"] else "off"))
     replays = [e["replay"] for e in summary["episodes"] if e["replay"]]
     if replays:
         print(f"\nReplays ({len(replays)}): open one with `rerun {replays[0]}`")

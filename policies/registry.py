@@ -90,6 +90,11 @@ def _resolve(name: str) -> type[Policy]:
     return cls
 
 
+def policy_class(name: str) -> type[Policy]:
+    """The class registered as ``name`` (imported now), without making a policy: ValueError if unknown."""
+    return _resolve(name)
+
+
 def make_policy(name: str, **kwargs: Any) -> Policy:
     """Instantiate a registered policy by name, e.g. ``make_policy("diffusion", checkpoint="runs/x/best.pt")``."""
     return _resolve(name)(**kwargs)

@@ -7,28 +7,10 @@ import pytest
 from parcelpick_env.scene.scene import BinSpec
 from policies.normal_std import NormalStdConfig, NormalStdPolicy
 from policies.random_policy import RandomPolicy
+from rendered_depth import depth_image, straight_down
 
 BOX_MIN = np.array([-0.05, -0.05, 0.0])
 BOX_MAX = np.array([0.25, 0.15, 0.10])  # a 30 x 20 x 10 cm box on the floor z = 0
-
-
-def _straight_down(focal: float, width: int, height: int, position) -> tuple[np.ndarray, np.ndarray]:
-    """Intrinsics and camera-to-world pose of an OpenCV camera at ``position`` looking straight down."""
-    K = np.array([[focal, 0, width / 2 - 0.5], [0, focal, height / 2 - 0.5], [0, 0, 1.0]])
-    cam_to_world = np.eye(4)
-    cam_to_world[:3, :3] = np.diag([1.0, -1.0, -1.0])
-    cam_to_world[:3, 3] = position
-    return K, cam_to_world
-
-
-def _depth_image(scene: o3d.t.geometry.RaycastingScene, K: np.ndarray, cam_to_world: np.ndarray, width: int,
-                 height: int) -> np.ndarray:
-    """Ray-cast depth (z along the optical axis, 0 where nothing is hit) of ``scene`` seen by the camera."""
-    rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
-        o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(cam_to_world)), width, height)
-    t_hit = scene.cast_rays(rays)["t_hit"].numpy()
-    z_along_ray = (rays.numpy()[..., 3:] @ cam_to_world[:3, :3])[..., 2]
-    return np.where(np.isfinite(t_hit), t_hit * z_along_ray, 0.0).astype(np.float32)
 
 
 def _render_box_scene(width: int = 320, height: int = 240, focal: float = 280.0):
@@ -38,8 +20,8 @@ def _render_box_scene(width: int = 320, height: int = 240, focal: float = 280.0)
     scene = o3d.t.geometry.RaycastingScene()
     for mesh in (floor, box):
         scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    K, cam_to_world = _straight_down(focal, width, height, (-0.3, -0.2, 1.0))
-    depth = _depth_image(scene, K, cam_to_world, width, height)
+    K, cam_to_world = straight_down(focal, width, height, (-0.3, -0.2, 1.0))
+    depth = depth_image(scene, K, cam_to_world, width, height)
     # The cloud the env would observe: every valid pixel, normals pointing up (enough for the random policy).
     u, v = np.meshgrid(np.arange(width), np.arange(height))
     cam = np.stack([(u - K[0, 2]) * depth / focal, (v - K[1, 2]) * depth / focal, depth], -1)[depth > 0]
@@ -181,8 +163,8 @@ def _render_bin_scene(width: int = 320, height: int = 240, focal: float = 200.0)
     for mesh in BIN.meshes() + [ball]:
         scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
                             o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
-    K, cam_to_world = _straight_down(focal, width, height, (0.0, 0.0, 0.7))
-    depth = _depth_image(scene, K, cam_to_world, width, height)
+    K, cam_to_world = straight_down(focal, width, height, (0.0, 0.0, 0.7))
+    depth = depth_image(scene, K, cam_to_world, width, height)
     return {"depth": depth}, {"intrinsics": K, "extrinsics": cam_to_world, "workspace": BIN.workspace()}
 
 

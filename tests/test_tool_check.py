@@ -1,0 +1,94 @@
+"""The deployment tool check on a ray-cast depth image of a 30 cm tall box on a floor (known distances)."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from parcelpick_env.envs.config import EnvConfig
+from parcelpick_env.suction.physical import physical_tool
+from policies.base import Candidates, Policy
+from policies.tool_check import ToolCheckConfig, ToolCheckedPolicy, observed_surface, tool_clear
+from rendered_depth import depth_image, straight_down
+
+BOX_MIN = np.array([0.10, -0.05, 0.0])
+BOX_MAX = np.array([0.20, 0.05, 0.30])  # a 10 x 10 x 30 cm box standing on the floor z = 0
+UP = np.array([0.0, 0.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def tall_box():
+    floor = o3d.geometry.TriangleMesh.create_box(2.0, 2.0, 0.01).translate((-1.0, -1.0, -0.01))
+    box = o3d.geometry.TriangleMesh.create_box(*(BOX_MAX - BOX_MIN)).translate(BOX_MIN)
+    scene = o3d.t.geometry.RaycastingScene()
+    for mesh in (floor, box):
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    K, cam_to_world = straight_down(280.0, 320, 240, (0.0, 0.0, 1.0))
+    depth = depth_image(scene, K, cam_to_world, 320, 240)
+    return {"depth": depth[..., None]}, {"intrinsics": K, "extrinsics": cam_to_world}
+
+
+def test_the_observed_surface_is_where_the_camera_saw_it(tall_box):
+    obs, info = tall_box
+    surface = observed_surface(obs["depth"][..., 0], info["intrinsics"], info["extrinsics"], stride=3)
+    rays = np.array([[0.15, 0.0, 1.0, 0, 0, -1], [-0.30, 0.10, 1.0, 0, 0, -1]], dtype=np.float32)
+    heights = 1.0 - surface.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    np.testing.assert_allclose(heights, [0.30, 0.0], atol=1e-3)
+
+
+def test_the_physical_tool_is_blocked_beside_a_tall_box_and_clear_away_from_it(tall_box):
+    obs, info = tall_box
+    tool = physical_tool(EnvConfig().suction)
+    # the cup's probe is 32 mm wide (20 mm lip + the planner's clearance), the wrist's 50 mm, from 15.5 cm up
+    assert tool.tool_radius == pytest.approx(0.032) and tool.body_radius == pytest.approx(0.05)
+    points = np.array([
+        [-0.25, 0.0, 0.0],  # the open floor
+        [0.08, 0.0, 0.0],  # 2 cm from the box: inside the cup's probe
+        [0.06, 0.0, 0.0],  # 4 cm: clear of the cup's probe, inside the wrist's
+        [0.02, 0.0, 0.0],  # 8 cm: clear of both
+        [0.15, 0.0, 0.30],  # the box's top: nothing above it
+    ])
+    clear = tool_clear(obs, info, points, np.tile(UP, (len(points), 1)))
+    assert clear.tolist() == [True, False, False, True, True]
+
+
+class _Fixed(Policy):
+    """Returns the same ranked candidates every time."""
+
+    name = "fixed"
+
+    def __init__(self, points, scores, obs_mode="pointcloud"):
+        self.candidates = Candidates(points=np.float32(points), normals=np.tile(np.float32(UP), (len(points), 1)),
+                                     scores=np.float32(scores))
+        self.obs_mode = obs_mode
+
+    def predict(self, obs, info=None, top_k=50):
+        c = self.candidates
+        return Candidates(points=c.points[:top_k], normals=c.normals[:top_k], scores=c.scores[:top_k])
+
+
+def test_the_wrapped_policy_acts_on_its_best_clear_candidate_and_keeps_the_rest_in_order(tall_box):
+    obs, info = tall_box
+    inner = _Fixed([[0.08, 0.0, 0.0], [0.06, 0.0, 0.0], [-0.25, 0.0, 0.0], [0.15, 0.0, 0.30]], [0.9, 0.8, 0.7, 0.6])
+    policy = ToolCheckedPolicy(inner)
+    np.testing.assert_allclose(policy.act(obs, info)[:3], [-0.25, 0.0, 0.0])
+    ranked = policy.predict(obs, info, top_k=4)
+    np.testing.assert_allclose(ranked.points[:, 0], [-0.25, 0.15, 0.08, 0.06])
+    np.testing.assert_allclose(ranked.scores, [0.7, 0.6, 0.0, 0.0])  # a blocked tool scores 0: descending still
+    assert policy.last_clear.tolist() == [True, True, False, False]
+    # only the first `candidates` are checked: the rest keep their rank and score
+    first_only = ToolCheckedPolicy(inner, ToolCheckConfig(candidates=1)).predict(obs, info, top_k=4)
+    np.testing.assert_allclose(first_only.scores, [0.8, 0.7, 0.6, 0.0])
+
+
+def test_the_tool_check_refuses_a_policy_without_a_depth_image_or_with_its_own_act():
+    with pytest.raises(ValueError, match="obs_mode='state_dict'"):
+        ToolCheckedPolicy(_Fixed([[0, 0, 0]], [1.0], obs_mode="state_dict"))
+
+    class OwnAct(_Fixed):
+        def act(self, obs, info=None):
+            return np.zeros(2, dtype=np.float32)
+
+    with pytest.raises(ValueError, match="acts otherwise"):
+        ToolCheckedPolicy(OwnAct([[0, 0, 0]], [1.0]))
+    with pytest.raises(ValueError, match="stride"):
+        ToolCheckConfig(stride=0)
