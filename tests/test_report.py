@@ -102,6 +102,15 @@ def test_report_has_our_and_paper_numbers_and_writes_pngs(report, tmp_path: Path
     assert dump["policies"]["dexnet"]["status"] == "not available"
 
 
+def test_each_clearance_table_says_whether_the_method_acted_through_the_tool_check(report, tmp_path: Path):
+    report["policies"]["diffusion"]["clearance"]["tool_check"] = True
+    md = write_report(report, tmp_path / "on" / "RESULTS.md", tmp_path / "on" / "figs")["markdown"].read_text()
+    assert "Acting through the cell's tool check" in md and "--no-tool-check" not in md
+    report["policies"]["diffusion"]["clearance"].update(tool_check=False, config={"tool_check": False})
+    md = write_report(report, tmp_path / "off" / "RESULTS.md", tmp_path / "off" / "figs")["markdown"].read_text()
+    assert "Acting on its top candidate as ranked (`--no-tool-check`)" in md and "through the cell's" not in md
+
+
 def test_differences_are_signed_and_rank_is_checked(report):
     lines = differences(report)
     cao = report["policies"]["cao"]["ap"]["AP"]

@@ -135,7 +135,8 @@ def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out
                 why = _unavailable(entry) or f"failed: {entry.get('clearance_error')}"
                 lines += [why, ""]
             else:
-                lines += [table_v(entry, tuple(cfg["objects"]), tuple(cfg["layouts"])), ""]
+                lines += [table_v(entry, tuple(cfg["objects"]), tuple(cfg["layouts"])), "",
+                          tool_check_line(entry["clearance"]), ""]
         lines += ["### Attempt outcomes", "", outcome_table(policies), ""]
         lines += _figure(figures, "clearance", "clearance per cell", out)
         lines += ["### Failure anatomy", "",
@@ -228,6 +229,17 @@ def paper_compat_section(report: dict[str, Any]) -> list[str]:
         "`paper_compat`), far more lenient than its evaluator's; (d) does both. These rows show how the protocol "
         "moves the figure; they are **paper-compatible, not a measure of picking**.", "",
         paper_compat_table(rows), "", *paper_compat_sentences(rows), ""]
+
+
+def tool_check_line(clearance: dict[str, Any]) -> str:
+    """Whether a method's clearance ran through the cell's tool check (policies/tool_check.py)."""
+    if clearance.get("tool_check"):
+        return ("Acting through the cell's tool check: the best of its candidates whose physical tool (cup, flange, "
+                "wrist) is clear of the observed scene (`policies/tool_check.py`).")
+    if clearance.get("config", {}).get("tool_check") is False:
+        return "Acting on its top candidate as ranked (`--no-tool-check`)."
+    return ("Without the tool check: it does not apply (the oracle checks its tool on the true scene; a method with "
+            "its own act), or the clearance predates it.")
 
 
 def label_physics_section(report: dict[str, Any], out: Path) -> list[str]:
