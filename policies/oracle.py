@@ -38,6 +38,9 @@ How it picks, per parcel, on the true meshes:
    half (``leaned_on``), then robust seals before marginal ones: within ``seal_margin`` of the threshold, or
    below it with the lip ``seal_standoff`` (1 mm) further out than its seat (a seal held across a mailer's
    hull gap); a parcel's marginal candidates go best backed-off seal first.
+   Where no candidate is admissible even on the steep last-resort faces, the oracle still tries: the tool-free
+   candidates, sealing ones first, then the smallest worst ring ratio, approaches that already failed last
+   (``_best_guesses``), as a real cell would rather than stand idle.
 4. Reachability (``ArmReach``): the arm's own numpy IK, chained from the pre-grasp point through the
    contact up to the carrying height; the first ranked candidate it reaches is proposed, the unreachable
    ones checked go to the back (never out). Where it reaches none of the first ``reach_checks``, the env's
@@ -549,9 +552,10 @@ class OraclePolicy(Policy):
         order = self._rank(points, normals, owner, grasp, truth, scorer)
         if len(order) == 0:  # nothing within max_face_tilt_deg: steeper side faces as a last resort
             order = self._rank(points, normals, owner, grasp, truth, scorer, self.config.last_resort_face_tilt_deg)
+        if len(order) == 0:  # nothing the cell is predicted to hold: its best guess beats a wasted cycle
+            order = self._best_guesses(points, normals, grasp)
         if len(order) == 0:
-            raise ValueError("the oracle finds no admissible pick (seal, tool clearance and ring conditions all "
-                             "hold) on any uncovered face")
+            raise ValueError("the oracle finds no uncovered face that the tool can reach")
         order = self._reachable_first(order, points, normals, owner, truth)[:top_k]
         self.last_scores = type(scores)(*(getattr(scores, f.name)[order] for f in dataclasses.fields(scores)))
         self.last_ratios = grasp.ratios[order]
@@ -573,6 +577,18 @@ class OraclePolicy(Policy):
         tilt = c.max_face_tilt_deg if max_face_tilt_deg is None else max_face_tilt_deg
         upright = normals[:, 2] >= np.cos(np.radians(tilt))
         return np.flatnonzero((grasp.seal >= c.seal_floor) & (grasp.collision > 0) & (grasp.worst < 1.0) & upright)
+
+    def _best_guesses(self, points: np.ndarray, normals: np.ndarray, grasp: PhysicalGrasp) -> np.ndarray:
+        """Where no candidate is admissible: the tool-free ones, sealing ones first, then the smallest worst ring
+        ratio (the nearest to holding), with approaches that already failed last. A real cell would try these
+        rather than stand idle: the prediction takes the worst yaw and the parcel hanging still."""
+        free = np.flatnonzero(grasp.collision > 0)
+        repeated = np.zeros(len(free), dtype=bool)
+        for failed in self._failed_picks:
+            repeated |= ((np.linalg.norm(points[free] - failed[:3], axis=1) < self.config.retry_radius)
+                         & (normals[free] @ failed[3:] > np.cos(np.radians(self.config.retry_angle_deg))))
+        worst = np.nan_to_num(grasp.worst[free], nan=np.inf)
+        return free[np.lexsort((worst, grasp.seal[free] < self.config.seal_floor, repeated))]
 
     def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth,
                    transport: bool = True) -> np.ndarray:

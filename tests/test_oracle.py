@@ -106,6 +106,23 @@ def test_oracle_keeps_only_picks_whose_material_holds_the_real_mass():
     assert lever[0] < 1e-6
 
 
+def test_where_nothing_would_hold_the_oracle_still_tries_a_guess_and_then_another():
+    """A 6 kg carton, past the cup's pull at any seal (5.1 kg holds at the COM with a worst ratio of 0.99): no
+    candidate is admissible, and instead of refusing, the oracle proposes the tool-free, sealing ones, the COM's
+    first; a failed guess sends it to another approach."""
+    heavy = [((0.30, 0.20, 0.12), 6.0, (0.0, 0.0, 0.06), 0.0, (0.0, 0.0, 0.0))]
+    oracle = OraclePolicy()
+    obs, info = state_obs(heavy), {"suction": SUCTION}
+    found = oracle.predict(obs, info, top_k=1000)
+    worst = oracle.last_ratios.max(axis=1)
+    assert np.all(worst >= 1.0)  # not one would hold: each is a guess
+    assert np.all(oracle.last_scores.collision > 0) and np.all(oracle.last_scores.seal >= oracle.config.seal_floor)
+    assert np.linalg.norm(found.points[0, :2]) < 0.001  # at the COM
+    first = found.points[0]
+    again = oracle.predict(obs, {**info, "outcome": "dropped"}, top_k=1)  # that guess failed: another approach
+    assert np.linalg.norm(again.points[0] - first) >= oracle.config.retry_radius
+
+
 def test_oracle_is_registered_and_the_only_reader_of_the_privileged_channel(monkeypatch):
     assert "oracle" in registry.available_policies()
     oracle = registry.make_policy("oracle")
