@@ -81,10 +81,11 @@ def plot_clearance(policies: dict[str, dict[str, Any]], path: Path) -> Path | No
         ax.bar(x + len(series) * width, [np.nan if p is None else p[row] for p in paper], width, color="0.75",
                hatch="//", edgecolor="0.4", label="Diffusion-Suction (paper, real robot)")
         ax.set_ylabel(f"{key} (%)")
-        ax.set_ylim(0, 120)  # headroom for the legend
+        ax.set_ylim(0, 105)
         ax.grid(axis="y", alpha=0.3)
     axes[1].set_xticks(x + 0.4 - width / 2, cells, rotation=30, ha="right")
-    axes[0].legend(fontsize=7, ncol=2, loc="upper center")
+    # Above the panels, so that no bar of a full cell hides behind it.
+    axes[0].legend(fontsize=7, ncol=4, loc="lower center", bbox_to_anchor=(0.5, 1.02))
     return _save(fig, path)
 
 
