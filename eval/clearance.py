@@ -61,6 +61,9 @@ class ClearanceConfig:
     # the cell's deployment check: every policy that ranks candidates from the camera acts on its best one whose
     # physical tool is clear of the observed scene (policies/tool_check.py); the oracle checks the true scene itself
     tool_check: bool = True
+    # with the tool check, also require the cell's cup to seal on the observed surface (policies/tool_check.py);
+    # without the tool check there is no check to add it to
+    seal_check: bool = True
     env_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -165,7 +168,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
 
     import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
     from policies.registry import make_policy, obs_mode_of
-    from policies.tool_check import ToolCheckedPolicy, tool_check_refusal
+    from policies.tool_check import ToolCheckConfig, ToolCheckedPolicy, tool_check_refusal
 
     cfg = task.config
     env_kwargs = dict(cfg.env_kwargs, object_set=task.objects, layout=task.layout, num_parcels=cfg.num_parcels)
@@ -176,7 +179,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
     policy_kwargs = {"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}
     policy = make_policy(cfg.policy, **policy_kwargs)
     if cfg.tool_check and tool_check_refusal(policy) is None:
-        policy = ToolCheckedPolicy(policy)
+        policy = ToolCheckedPolicy(policy, ToolCheckConfig(seal=cfg.seal_check))
 
     start = time.perf_counter()
     env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads
@@ -310,7 +313,7 @@ def evaluate_clearance(config: ClearanceConfig, progress: bool = True) -> dict[s
     summary = summarise(results)
     summary["episodes"] = [asdict(r) for r in results]
     summary["config"] = {k: v for k, v in asdict(config).items()}
-    summary["tool_check"] = tool_check_applies(config)
+    summary.update(tool_check_flags(config))
     return summary
 
 
@@ -320,6 +323,12 @@ def tool_check_applies(config: ClearanceConfig) -> bool:
     from policies.tool_check import tool_check_refusal
 
     return config.tool_check and tool_check_refusal(policy_class(config.policy)) is None
+
+
+def tool_check_flags(config: ClearanceConfig) -> dict[str, bool]:
+    """What a summary records of the check its episodes ran through: ``tool_check`` and ``seal_check``."""
+    applies = tool_check_applies(config)
+    return {"tool_check": applies, "seal_check": applies and config.seal_check}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -339,6 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-tool-check", dest="tool_check", action="store_false",
                    help="act on the policy's top candidate as ranked, without the cell's check that the physical "
                         "tool (cup, flange, wrist) is clear of the observed scene (policies/tool_check.py)")
+    p.add_argument("--no-seal-check", dest="seal_check", action="store_false",
+                   help="check the tool only, not also that the cell's 40 mm cup seals on the observed surface "
+                        "(the paper's labels score the seal with a 10 mm cup)")
     p.add_argument("--record", default=None, metavar="DIR", help="write one rerun .rrd replay per episode here")
     p.add_argument("--out", default=None, help="write the summary JSON here")
     return p
@@ -362,14 +374,16 @@ def main(argv: list[str] | None = None) -> int:
                                  episodes=args.episodes, num_parcels=args.parcels, seed=args.seed,
                                  workers=args.workers, backend=args.backend, ray_address=args.ray_address,
                                  record_dir=args.record, checkpoint=args.checkpoint,
-                                 max_attempts=args.max_attempts, tool_check=args.tool_check)
+                                 max_attempts=args.max_attempts, tool_check=args.tool_check,
+                                 seal_check=args.seal_check)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     summary = evaluate_clearance(config)
     print(f"\nClosed-loop clearance, policy {config.policy!r}: R_grasp / R_object (%)\n")
     print(format_table(summary, config.objects, config.layouts))
-    print("Tool check (policies/tool_check.py): " + ("on" if summary["tool_check"] else "off"))
+    print("Tool check (policies/tool_check.py): " + ("off" if not summary["tool_check"]
+                                                     else "on, with the seal" if summary["seal_check"] else "on"))
     replays = [e["replay"] for e in summary["episodes"] if e["replay"]]
     if replays:
         print(f"\nReplays ({len(replays)}): open one with `rerun {replays[0]}`")

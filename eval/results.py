@@ -39,7 +39,7 @@ if __package__ in (None, ""):  # allow `python eval/results.py` as well as `pyth
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from eval.clearance import (LAYOUTS, OBJECT_SETS, ClearanceConfig, EpisodeResult, summarise,  # noqa: E402
-                            tool_check_applies)
+                            tool_check_flags)
 from eval.report import orchestration  # noqa: E402
 from eval.report.config import DEFAULT_POLICIES, DIFFUSION, PAPER_COMPAT_POLICIES, ReportConfig  # noqa: E402
 from eval.report.markdown import write_report  # noqa: E402
@@ -300,7 +300,7 @@ def assemble(cfg: ResultsConfig) -> dict[str, Any]:
             if episodes:
                 summary = summarise([EpisodeResult(**e) for e in episodes])
                 summary["episodes"] = episodes
-                summary["tool_check"] = tool_check_applies(ClearanceConfig(policy=name))  # as the cells ran it
+                summary.update(tool_check_flags(ClearanceConfig(policy=name)))  # as the cells ran it
                 entry["clearance"] = summary
             missing = sum(c is None for c in cells)
             if errors or missing:

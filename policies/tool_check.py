@@ -6,26 +6,33 @@ neighbour can be one the arm cannot come down to (`unreachable: descend`). ``Too
 policy's ranking and moves the candidates whose physical tool meets the observed scene behind the rest.
 
 It sees only what any policy sees: the depth image and the camera calibration. The depth image becomes a surface
-mesh (``observed_surface``: one vertex per ``stride`` pixels, two triangles per pixel quad), with the triangles that
+mesh (``observed_mesh``: one vertex per ``stride`` pixels, two triangles per pixel quad), with the triangles that
 bridge a depth jump kept: they close the camera's shadow behind an edge, so what the camera cannot see counts as
 occupied, as a heightmap planner takes it. The tool is the physical one (``suction.physical.physical_tool``: the
 cup's radius up to the flange, then the flange and wrist, plus the motion planner's clearance), probed with the
 shared scorer's ``collision_scores``, so labels, oracle and this check use one definition of a free tool.
+
+With ``seal`` (on by default) it also asks whether the cell's cup would seal where it lands, judged on the same observed
+surface with the shared bellows seal (``suction.cup_seal.bellows_seal``, the cup pressed to first touch as the
+labels place it): a pick whose 40 mm lip hangs over a face's edge fails it, as it fails in the env (`no_seal:
+miss` or `edge`). The paper's labels score the seal with a 10 mm cup, so a model trained on them ranks points
+10-20 mm from an edge that the cell's cup cannot seal.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 
 import numpy as np
-import open3d as o3d
+import trimesh
 
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.suction.collision import collision_scores
 from parcelpick_env.suction.config import SuctionConfig
-from parcelpick_env.suction.geometry import o3d_tensor
+from parcelpick_env.suction.cup_seal import bellows_seal
 from parcelpick_env.suction.physical import physical_tool
+from parcelpick_env.suction.seal import SealScene
 from policies.base import Candidates, Policy
 from policies.heatmap import pixels_to_world
 from policies.observation import camera, depth_image
@@ -38,24 +45,34 @@ class ToolCheckConfig:
     """``candidates``: how many of the wrapped policy's ranked picks are checked (the rest keep their order);
     ``stride``: depth pixels between mesh vertices (3 at 640x480 is about 5 mm on the pile, the probe's own ring
     spacing: on 30-parcel piles 1 verdict in 200 differs from every pixel's mesh, at a tenth of its time;
-    ``benchmarks/bench_tool_check.py``)."""
+    ``benchmarks/bench_tool_check.py``); ``seal``: also require the cup to seal on the observed surface, with at
+    least the env's ``seal_threshold``."""
 
     candidates: int = 50
     stride: int = 3
+    seal: bool = True
     suction: SuctionConfig = field(default_factory=lambda: EnvConfig().suction)  # the cell's cup, as shipped
+    seal_threshold: float = field(default_factory=lambda: float(EnvConfig().grasp.seal_threshold))
 
     def __post_init__(self) -> None:
         for name in ("candidates", "stride"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ToolCheckConfig.{name} must be an int >= 1, got {value!r}")
+        if not isinstance(self.seal, bool):
+            raise ValueError(f"ToolCheckConfig.seal must be a bool, got {self.seal!r}")
         if not isinstance(self.suction, SuctionConfig):
             raise ValueError(f"ToolCheckConfig.suction must be a SuctionConfig, got {type(self.suction).__name__}")
+        if self.seal and self.suction.seal_model != "bellows":
+            raise ValueError("ToolCheckConfig.seal needs the cell's bellows cup (suction.seal_model='bellows'), "
+                             f"got {self.suction.seal_model!r}")
+        if not 0.0 <= self.seal_threshold <= 1.0:
+            raise ValueError(f"ToolCheckConfig.seal_threshold must be in [0, 1], got {self.seal_threshold!r}")
 
 
-def observed_surface(depth: np.ndarray, intrinsics: np.ndarray, extrinsics: np.ndarray, stride: int = 3
-                     ) -> o3d.t.geometry.RaycastingScene:
-    """A ray scene of the surface the depth image sees: a vertex every ``stride`` pixels, two triangles per quad of
+def observed_mesh(depth: np.ndarray, intrinsics: np.ndarray, extrinsics: np.ndarray, stride: int = 3
+                  ) -> trimesh.Trimesh:
+    """The surface the depth image sees (world frame): a vertex every ``stride`` pixels, two triangles per quad of
     four valid vertices (a pixel without depth leaves a hole), triangles across depth jumps included."""
     rows, cols = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
     h, w = rows.shape
@@ -66,24 +83,50 @@ def observed_surface(depth: np.ndarray, intrinsics: np.ndarray, extrinsics: np.n
     quad = (valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]).ravel()
     triangles = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3)[quad],
                                 np.stack([b, c, d], -1).reshape(-1, 3)[quad]])
-    scene = o3d.t.geometry.RaycastingScene()
-    if len(triangles):
-        scene.add_triangles(o3d_tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-                            o3d_tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
-    return scene
+    return trimesh.Trimesh(vertices, triangles, process=False)
+
+
+class ObservedSurface:
+    """The observed surface in one ray scene that serves both probes, the tool's and the cup's."""
+
+    def __init__(self, mesh: trimesh.Trimesh, suction: SuctionConfig):
+        self.suction = suction
+        self._seal_scene = SealScene.of_surface(mesh, suction) if len(mesh.faces) else None
+
+    def tool_clear(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(K,) bool: the physical tool on each candidate's approach axis meets none of the surface."""
+        if self._seal_scene is None:
+            return np.ones(len(points), dtype=bool)
+        return collision_scores(self._seal_scene.scene, points, normals, physical_tool(self.suction)) > 0.5
+
+    def seal(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(K,) the cup's bellows seal quality, pressed along -normal to first touch on the surface."""
+        if self._seal_scene is None:
+            return np.zeros(len(points), dtype=np.float32)
+        return bellows_seal(self._seal_scene, points, -normals, np.zeros(len(points), dtype=np.int64),
+                            measure_gap=False).quality
+
+
+def check_picks(obs: Mapping[str, Any], info: Mapping[str, Any] | None, points: np.ndarray, normals: np.ndarray,
+                config: ToolCheckConfig = ToolCheckConfig()) -> np.ndarray:
+    """(K,) bool: each candidate passes the cell's check (its tool is clear and, with ``config.seal``, its cup
+    seals), judged on the surface the depth image sees."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    K, T = camera(info, "the tool check")
+    surface = ObservedSurface(observed_mesh(depth_image(obs, "the tool check"), K, T, config.stride), config.suction)
+    passed = surface.tool_clear(points, normals)
+    if config.seal:
+        passed &= surface.seal(points, normals) >= config.seal_threshold
+    return passed
 
 
 def tool_clear(obs: Mapping[str, Any], info: Mapping[str, Any] | None, points: np.ndarray, normals: np.ndarray,
                config: ToolCheckConfig = ToolCheckConfig()) -> np.ndarray:
     """(K,) bool: the cell's physical tool, on each candidate's approach axis, is clear of the observed surface."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(points) == 0:
-        return np.zeros(0, dtype=bool)
-    K, T = camera(info, "the tool check")
-    scene = observed_surface(depth_image(obs, "the tool check"), K, T, config.stride)
-    free = collision_scores(scene, points, np.asarray(normals, dtype=np.float64).reshape(-1, 3),
-                            physical_tool(config.suction))
-    return free > 0.5
+    return check_picks(obs, info, points, normals, replace(config, seal=False))
 
 
 def tool_check_refusal(policy: Policy | type[Policy]) -> str | None:
@@ -101,10 +144,11 @@ def tool_check_refusal(policy: Policy | type[Policy]) -> str | None:
 
 
 class ToolCheckedPolicy(Policy):
-    """``inner``'s ranking with the physical tool's collision check applied to its first ``candidates``: a pick
-    whose tool meets the observed scene scores 0 (the suction quality is a product with its collision score), so
-    it goes behind every clear one, in its old order, and ``act`` takes the best clear pick (with none clear, the
-    first as before). ``last_clear`` holds the verdicts of the last call, in the returned order."""
+    """``inner``'s ranking with the cell's check applied to its first ``candidates``: a pick whose tool meets the
+    observed scene (or, with ``seal``, whose cup would not seal) scores 0 (the suction quality is a product with
+    its collision and seal scores), so it goes behind every passing one, in its old order, and ``act`` takes the
+    best passing pick (with none passing, the first as before). ``last_passed`` holds the verdicts of the last
+    call, in the returned order."""
 
     def __init__(self, inner: Policy, config: ToolCheckConfig | None = None):
         why = tool_check_refusal(inner)
@@ -114,7 +158,7 @@ class ToolCheckedPolicy(Policy):
         self.config = config or ToolCheckConfig()
         self.name = f"{inner.name}+tool_check"
         self.obs_mode = inner.obs_mode
-        self.last_clear = np.zeros(0, dtype=bool)
+        self.last_passed = np.zeros(0, dtype=bool)
 
     def reset(self, seed: int | None = None) -> None:
         self.inner.reset(seed)
@@ -123,10 +167,10 @@ class ToolCheckedPolicy(Policy):
                 top_k: int = 50) -> Candidates:
         ranked = self.inner.predict(obs, info, top_k=max(top_k, self.config.candidates))
         checked = min(len(ranked), self.config.candidates)
-        clear = np.ones(len(ranked), dtype=bool)
-        clear[:checked] = tool_clear(obs, info, ranked.points[:checked], ranked.normals[:checked], self.config)
+        passed = np.ones(len(ranked), dtype=bool)
+        passed[:checked] = check_picks(obs, info, ranked.points[:checked], ranked.normals[:checked], self.config)
         floor = min(0.0, float(ranked.scores.min())) if len(ranked) else 0.0
-        scores = np.where(clear, ranked.scores, floor).astype(np.float32)
+        scores = np.where(passed, ranked.scores, floor).astype(np.float32)
         order = np.argsort(-scores, kind="stable")[:top_k]
-        self.last_clear = clear[order]
+        self.last_passed = passed[order]
         return Candidates(points=ranked.points[order], normals=ranked.normals[order], scores=scores[order])

@@ -8,7 +8,7 @@ import pytest
 
 from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
                             evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise,
-                            tool_check_applies)
+                            tool_check_applies, tool_check_flags)
 from fresh_process import in_fresh_process
 from parcelpick_env.camera.config import CameraConfig
 
@@ -114,10 +114,12 @@ def test_cli_unknown_policy_exits_2_with_message(capsys):
 
 def test_episodes_run_with_the_tool_check_unless_it_is_off_or_the_policy_is_the_oracle():
     on = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=2)), progress=False)
-    assert on["tool_check"] is True and on["overall"]["outcomes"].get("invalid_action", 0) == 0
-    assert evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), tool_check=False),
-                              progress=False)["tool_check"] is False
+    assert on["tool_check"] is True and on["seal_check"] is True
+    assert on["overall"]["outcomes"].get("invalid_action", 0) == 0
+    off = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), tool_check=False), progress=False)
+    assert off["tool_check"] is False and off["seal_check"] is False
     assert tool_check_applies(ClearanceConfig(**dict(TINY, policy="oracle"))) is False
+    assert tool_check_flags(ClearanceConfig(**TINY, seal_check=False)) == {"tool_check": True, "seal_check": False}
 
 
 def test_cli_bad_value_exits_2(capsys):

@@ -106,6 +106,10 @@ def test_each_clearance_table_says_whether_the_method_acted_through_the_tool_che
     report["policies"]["diffusion"]["clearance"]["tool_check"] = True
     md = write_report(report, tmp_path / "on" / "RESULTS.md", tmp_path / "on" / "figs")["markdown"].read_text()
     assert "Acting through the cell's tool check" in md and "--no-tool-check" not in md
+    assert "whose cup seals on it" not in md
+    report["policies"]["diffusion"]["clearance"]["seal_check"] = True
+    md = write_report(report, tmp_path / "seal" / "RESULTS.md", tmp_path / "seal" / "figs")["markdown"].read_text()
+    assert "clear of the observed scene and whose cup seals on it" in md
     report["policies"]["diffusion"]["clearance"].update(tool_check=False, config={"tool_check": False})
     md = write_report(report, tmp_path / "off" / "RESULTS.md", tmp_path / "off" / "figs")["markdown"].read_text()
     assert "Acting on its top candidate as ranked (`--no-tool-check`)" in md and "through the cell's" not in md

@@ -112,7 +112,8 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     assert "## Labels vs physics\n\nNot measured" in md
     dump = json.loads(Path(out["paths"]["json"]).read_text())
     assert len(dump["policies"]["cao"]["clearance"]["episodes"]) == 4  # both cells, 2 episodes each
-    assert dump["policies"]["cao"]["clearance"]["tool_check"] is True  # the cells ran through the tool check
+    clearance = dump["policies"]["cao"]["clearance"]
+    assert clearance["tool_check"] is True and clearance["seal_check"] is True  # as the cells ran them
     assert "Acting through the cell's tool check" in md
     assert "| x | 1 |" in (bench_dir / "RESULTS.md").read_text()
     # Nothing left to do: a third run only re-renders the pages.

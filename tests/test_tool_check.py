@@ -1,5 +1,7 @@
 """The deployment tool check on a ray-cast depth image of a 30 cm tall box on a floor (known distances)."""
 
+import dataclasses
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -7,7 +9,8 @@ import pytest
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.suction.physical import physical_tool
 from policies.base import Candidates, Policy
-from policies.tool_check import ToolCheckConfig, ToolCheckedPolicy, observed_surface, tool_clear
+from parcelpick_env.suction.geometry import build_scene
+from policies.tool_check import ToolCheckConfig, ToolCheckedPolicy, check_picks, observed_mesh, tool_clear
 from rendered_depth import depth_image, straight_down
 
 BOX_MIN = np.array([0.10, -0.05, 0.0])
@@ -29,7 +32,7 @@ def tall_box():
 
 def test_the_observed_surface_is_where_the_camera_saw_it(tall_box):
     obs, info = tall_box
-    surface = observed_surface(obs["depth"][..., 0], info["intrinsics"], info["extrinsics"], stride=3)
+    surface = build_scene([observed_mesh(obs["depth"][..., 0], info["intrinsics"], info["extrinsics"], stride=3)])
     rays = np.array([[0.15, 0.0, 1.0, 0, 0, -1], [-0.30, 0.10, 1.0, 0, 0, -1]], dtype=np.float32)
     heights = 1.0 - surface.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     np.testing.assert_allclose(heights, [0.30, 0.0], atol=1e-3)
@@ -49,6 +52,23 @@ def test_the_physical_tool_is_blocked_beside_a_tall_box_and_clear_away_from_it(t
     ])
     clear = tool_clear(obs, info, points, np.tile(UP, (len(points), 1)))
     assert clear.tolist() == [True, False, False, True, True]
+
+
+def test_with_the_seal_on_a_pick_whose_lip_hangs_over_the_box_edge_fails_for_the_cells_cup_only(tall_box):
+    obs, info = tall_box
+    points = np.array([
+        [0.15, 0.0, 0.30],  # the box top's centre: 50 mm from every edge
+        [0.13, 0.0, 0.30],  # 30 mm from the edge: the 20 mm lip rests on the top
+        [0.115, 0.0, 0.30],  # 15 mm: the cell's 20 mm lip hangs 5 mm over the edge, a 10 mm one does not
+        [-0.25, 0.0, 0.0],  # the open floor
+    ])
+    normals = np.tile(UP, (len(points), 1))
+    cell = ToolCheckConfig(seal=True)
+    assert cell.suction.cup_radius == pytest.approx(0.020)
+    assert check_picks(obs, info, points, normals, cell).tolist() == [True, True, False, True]
+    assert tool_clear(obs, info, points, normals, cell).tolist() == [True, True, True, True]  # the seal's verdict
+    small = ToolCheckConfig(seal=True, suction=dataclasses.replace(cell.suction, cup_radius=0.010))
+    assert check_picks(obs, info, points, normals, small).tolist() == [True, True, True, True]
 
 
 class _Fixed(Policy):
@@ -74,7 +94,7 @@ def test_the_wrapped_policy_acts_on_its_best_clear_candidate_and_keeps_the_rest_
     ranked = policy.predict(obs, info, top_k=4)
     np.testing.assert_allclose(ranked.points[:, 0], [-0.25, 0.15, 0.08, 0.06])
     np.testing.assert_allclose(ranked.scores, [0.7, 0.6, 0.0, 0.0])  # a blocked tool scores 0: descending still
-    assert policy.last_clear.tolist() == [True, True, False, False]
+    assert policy.last_passed.tolist() == [True, True, False, False]
     # only the first `candidates` are checked: the rest keep their rank and score
     first_only = ToolCheckedPolicy(inner, ToolCheckConfig(candidates=1)).predict(obs, info, top_k=4)
     np.testing.assert_allclose(first_only.scores, [0.8, 0.7, 0.6, 0.0])
@@ -92,3 +112,5 @@ def test_the_tool_check_refuses_a_policy_without_a_depth_image_or_with_its_own_a
         ToolCheckedPolicy(OwnAct([[0, 0, 0]], [1.0]))
     with pytest.raises(ValueError, match="stride"):
         ToolCheckConfig(stride=0)
+    with pytest.raises(ValueError, match="bellows"):
+        ToolCheckConfig(seal=True, suction=dataclasses.replace(EnvConfig().suction, seal_model="spring"))

@@ -234,8 +234,9 @@ def paper_compat_section(report: dict[str, Any]) -> list[str]:
 def tool_check_line(clearance: dict[str, Any]) -> str:
     """Whether a method's clearance ran through the cell's tool check (policies/tool_check.py)."""
     if clearance.get("tool_check"):
+        seal = " and whose cup seals on it" if clearance.get("seal_check") else ""
         return ("Acting through the cell's tool check: the best of its candidates whose physical tool (cup, flange, "
-                "wrist) is clear of the observed scene (`policies/tool_check.py`).")
+                f"wrist) is clear of the observed scene{seal} (`policies/tool_check.py`).")
     if clearance.get("config", {}).get("tool_check") is False:
         return "Acting on its top candidate as ranked (`--no-tool-check`)."
     return ("Without the tool check: it does not apply (the oracle checks its tool on the true scene; a method with "

@@ -64,6 +64,17 @@ class SealScene:
         self.offsets = centres - (lo + hi) / 2.0
         self.scene = build_scene(meshes, self.offsets)
 
+    @classmethod
+    def of_surface(cls, surface: trimesh.Trimesh, config: SuctionConfig) -> "SealScene":
+        """One open surface (an observed depth mesh, not a closed parcel) as object 0, left in place: with one
+        object there is no neighbour to keep the rays from, and an open surface has no inside to test for."""
+        scene = cls([], config)
+        scene.num_objects = 1
+        scene.offsets = np.zeros((1, 3))
+        scene.oriented = np.zeros(1, dtype=bool)
+        scene.scene = build_scene([surface])
+        return scene
+
 
 def rim_rays_per_vertex(config: SuctionConfig) -> int:
     """Rays cast for each rim vertex: 1 (exactly on the rim), or the suctionnet bin's ``SUCTIONNET_BIN_RAYS``."""
