@@ -26,6 +26,16 @@ from policies.tool_check import ToolCheckConfig, check_picks, tool_clear  # noqa
 STRIDES = (1, 2, 3, 4, 6)
 
 
+def fastest(check, repeats: int) -> tuple[float, np.ndarray]:
+    """The fastest of ``repeats`` calls of ``check()`` (seconds) and its verdicts."""
+    best, verdicts = np.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        verdicts = check()
+        best = min(best, time.perf_counter() - t0)
+    return best, verdicts
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=4)
@@ -48,22 +58,14 @@ def main(argv: list[str] | None = None) -> None:
             finest = None
             for stride in STRIDES:
                 config = ToolCheckConfig(stride=stride)
-                best = np.inf
-                for _ in range(args.repeats):
-                    t0 = time.perf_counter()
-                    clear = tool_clear(obs, info, points, normals, config)
-                    best = min(best, time.perf_counter() - t0)
+                best, clear = fastest(lambda: tool_clear(obs, info, points, normals, config), args.repeats)
                 times[stride].append(best)
                 finest = clear if finest is None else finest
                 differ[stride] += int((clear != finest).sum())
             blocked += int((~finest).sum())
             checked += len(finest)
             with_seal = ToolCheckConfig(seal=True)
-            best = np.inf
-            for _ in range(args.repeats):
-                t0 = time.perf_counter()
-                passed = check_picks(obs, info, points, normals, with_seal)
-                best = min(best, time.perf_counter() - t0)
+            best, passed = fastest(lambda: check_picks(obs, info, points, normals, with_seal), args.repeats)
             seal_times.append(best)
             clear = tool_clear(obs, info, points, normals, with_seal)
             clear_at_default += int(clear.sum())
