@@ -325,10 +325,13 @@ def tool_check_applies(config: ClearanceConfig) -> bool:
     return config.tool_check and tool_check_refusal(policy_class(config.policy)) is None
 
 
+CHECK_FLAGS = ("tool_check", "seal_check")  # what a summary records of the tool check its episodes ran through
+
+
 def tool_check_flags(config: ClearanceConfig) -> dict[str, bool]:
-    """What a summary records of the check its episodes ran through: ``tool_check`` and ``seal_check``."""
+    """What a summary records of the check its episodes ran through (``CHECK_FLAGS``)."""
     applies = tool_check_applies(config)
-    return {"tool_check": applies, "seal_check": applies and config.seal_check}
+    return dict(zip(CHECK_FLAGS, (applies, applies and config.seal_check)))
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -38,8 +38,7 @@ from typing import Any
 if __package__ in (None, ""):  # allow `python eval/results.py` as well as `python -m eval.results`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from eval.clearance import (LAYOUTS, OBJECT_SETS, ClearanceConfig, EpisodeResult, summarise,  # noqa: E402
-                            tool_check_flags)
+from eval.clearance import CHECK_FLAGS, LAYOUTS, OBJECT_SETS, EpisodeResult, summarise  # noqa: E402
 from eval.report import orchestration  # noqa: E402
 from eval.report.config import DEFAULT_POLICIES, DIFFUSION, PAPER_COMPAT_POLICIES, ReportConfig  # noqa: E402
 from eval.report.markdown import write_report  # noqa: E402
@@ -164,8 +163,25 @@ def _clearance_part(name: str, report: ReportConfig, objects: str, layout: str, 
         if entry.get("status") == "not available":  # the AP part could not build it: no episode would run
             return {"episodes": None, "error": entry.get("reason")}
         summary, error = orchestration.evaluate_policy_clearance(name, report, (objects,), (layout,))
-        return {"episodes": None if summary is None else summary["episodes"], "error": error}
+        if summary is None:
+            return {"episodes": None, "error": error}
+        return {"episodes": summary["episodes"], "error": error,
+                "checks": {k: summary.get(k) for k in CHECK_FLAGS}}  # as this cell ran: the report says so
     return run
+
+
+def cell_checks(name: str, cells: Sequence[dict[str, Any]]) -> tuple[dict[str, Any], str | None]:
+    """(the tool check flags a policy's finished cells ran with, None) or (unknown flags, why not one set).
+
+    A cell finished before the cells recorded them is unknown (None, so the report claims nothing); cells that ran
+    with different checks (parts kept from before the check changed, say) cannot be pooled into one row."""
+    found = {json.dumps(c.get("checks"), sort_keys=True) for c in cells}
+    unknown = dict.fromkeys(CHECK_FLAGS)
+    if len(found) > 1:
+        shown = sorted(f.replace("null", "not recorded") for f in found)
+        return unknown, (f"its cells ran with different tool checks ({'; '.join(shown)}): "
+                         f"re-run them with --force clearance/{name}")
+    return (json.loads(found.pop()) if found else None) or unknown, None
 
 
 def _bench_part(script: Path) -> Callable[[], Any]:
@@ -297,10 +313,13 @@ def assemble(cfg: ResultsConfig) -> dict[str, Any]:
             cells = [_value(work / "clearance" / name / f"{o}-{la}.json") for o in r.objects for la in r.layouts]
             errors = [c["error"] for c in cells if c is not None and c["error"]]
             episodes = [e for c in cells if c is not None and c["episodes"] for e in c["episodes"]]
-            if episodes:
+            checks, mixed = cell_checks(name, [c for c in cells if c is not None and c["episodes"]])
+            if mixed:
+                errors.append(mixed)
+            elif episodes:
                 summary = summarise([EpisodeResult(**e) for e in episodes])
                 summary["episodes"] = episodes
-                summary.update(tool_check_flags(ClearanceConfig(policy=name)))  # as the cells ran it
+                summary.update(checks)
                 entry["clearance"] = summary
             missing = sum(c is None for c in cells)
             if errors or missing:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from eval import results
-from eval.clearance import EpisodeResult, attempt_record, summarise
+from eval.clearance import ClearanceConfig, EpisodeResult, attempt_record, summarise, tool_check_flags
 from eval.metrics import aggregate_ap, scene_ap
 from eval.report import orchestration
 from eval.report.config import ReportConfig
@@ -63,6 +63,7 @@ def _fake_clearance(calls: Counter, interrupt_at: str | None):
                     for e in range(config.episodes)]
         summary = summarise(episodes)
         summary["episodes"] = [asdict(e) for e in episodes]
+        summary.update(tool_check_flags(ClearanceConfig(policy=name)))  # as evaluate_clearance records it
         return summary, None
     return run
 
@@ -121,6 +122,17 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     assert set(results.regenerate(cfg, log=lambda _: None)["status"].values()) == {"skipped"} and calls == before
     page = (bench_dir / "RESULTS.md").read_text()  # regenerated twice: the hand-written text stays, once
     assert page.count("keep me") == 1 and page.count(results.GENERATED_BEGIN) == 1 and page.count("| x | 1 |") == 1
+
+
+def test_the_report_claims_the_tool_check_its_cells_recorded_and_refuses_to_pool_cells_that_differ():
+    seal, tool_only = {"tool_check": True, "seal_check": True}, {"tool_check": True, "seal_check": False}
+    assert results.cell_checks("cao", [{"checks": seal}, {"checks": seal}]) == (seal, None)
+    unknown = {"tool_check": None, "seal_check": None}
+    assert results.cell_checks("cao", [{"episodes": []}, {}]) == (unknown, None)  # finished before cells recorded
+    for cells in ([{"checks": seal}, {"checks": tool_only}], [{"checks": seal}, {}]):
+        flags, why = results.cell_checks("cao", cells)
+        assert flags == unknown and "different tool checks" in why and "--force clearance/cao" in why
+    assert "not recorded" in results.cell_checks("cao", [{"checks": seal}, {}])[1]
 
 
 def test_a_forced_data_part_generates_anew_and_keeps_the_old_set_beside_it(tmp_path: Path, monkeypatch):
