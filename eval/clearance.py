@@ -64,6 +64,9 @@ class ClearanceConfig:
     # with the tool check, also require the cell's cup to seal on the observed surface (policies/tool_check.py);
     # without the tool check there is no check to add it to
     seal_check: bool = True
+    # record, per attempt, which parcel the pick took and whether others rested on it (eval/pick_audit.py: the
+    # evaluator reads the true scene; the pick and the policy's input are unchanged)
+    audit_picks: bool = False
     env_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -194,9 +197,10 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
             if first:
                 _log_policy_extras(env.unwrapped, policy)
                 first = False
+            audit = _audit(env.unwrapped, action) if cfg.audit_picks else None
             obs, _, terminated, truncated, info = env.step(action)
             outcomes[info["outcome"]] += 1
-            attempt_log.append(attempt_record(info))
+            attempt_log.append(attempt_record(info) if audit is None else {**attempt_record(info), "audit": audit})
             if terminated or truncated:
                 break
         replay = getattr(env.unwrapped, "replay_path", None)
@@ -208,6 +212,15 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         parcels_placed=int(info["parcels_placed"]), parcels_cleared=int(info["parcels_cleared"]),
         reason=str(info.get("reason", "truncated")), outcomes=dict(outcomes),
         replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start, attempt_log=attempt_log)
+
+
+def _audit(env, action: np.ndarray) -> dict[str, Any] | None:
+    """The pick's audit (eval/pick_audit.py), or None where there is no pick to read (a pixel action, or none)."""
+    from eval.pick_audit import audit_pick
+
+    if env.config.action_mode != "pose" or not np.all(np.isfinite(action)):
+        return None
+    return audit_pick(env, action).to_dict()
 
 
 def _choose_action(policy, obs, info, shape) -> np.ndarray:
@@ -273,6 +286,13 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
     total["R_object"] = 100.0 * total["cleared"] / max(total["placed"], 1)
     total["intervals"] = _rate_intervals(results, [f"{r.objects}/{r.layout}" for r in results]) if results else {}
     total.update({k: dict(v) for k, v in counters.items()})
+    from eval.pick_audit import cover_rates
+
+    for key, cell in cells.items():  # with --audit-picks: success on free parcels and on parcels others rest on
+        if (by_cover := cover_rates([r.attempt_log for r in members[key]])) is not None:
+            cell["by_cover"] = by_cover
+    if (by_cover := cover_rates([r.attempt_log for r in results])) is not None:
+        total["by_cover"] = by_cover
     return {"cells": cells, "overall": total}
 
 
@@ -302,6 +322,12 @@ def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) 
     lines.append("Outcomes: " + ", ".join(f"{k} {o['outcomes'].get(k, 0)}" for k in OUTCOMES))
     if o.get("causes"):
         lines.append("Failures: " + ", ".join(f"{k} {n}" for k, n in sorted(o["causes"].items(), key=lambda kv: -kv[1])))
+    if o.get("by_cover"):
+        where = {"free": "on free parcels", "covered": "on parcels others rest on", "none": "off every parcel"}
+        lines.append("Picks (--audit-picks), successes / attempts: " + ", ".join(
+            f"{where[kind]} {row['successes']}/{row['attempts']}" for kind, row in o["by_cover"].items())
+            + f"; on a covered parcel while a free one was left: "
+              f"{o['by_cover'].get('covered', {}).get('while_free_left', 0)}")
     return "\n".join(lines)
 
 
@@ -354,6 +380,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-seal-check", dest="seal_check", action="store_false",
                    help="check the tool only, not also that the cell's 40 mm cup seals on the observed surface "
                         "(the paper's labels score the seal with a 10 mm cup)")
+    p.add_argument("--audit-picks", action="store_true",
+                   help="record per attempt which parcel the pick took and whether other parcels rested on it "
+                        "(eval/pick_audit.py; the evaluator reads the true scene, the policy does not)")
     p.add_argument("--record", default=None, metavar="DIR", help="write one rerun .rrd replay per episode here")
     p.add_argument("--out", default=None, help="write the summary JSON here")
     return p
@@ -378,7 +407,7 @@ def main(argv: list[str] | None = None) -> int:
                                  workers=args.workers, backend=args.backend, ray_address=args.ray_address,
                                  record_dir=args.record, checkpoint=args.checkpoint,
                                  max_attempts=args.max_attempts, tool_check=args.tool_check,
-                                 seal_check=args.seal_check)
+                                 seal_check=args.seal_check, audit_picks=args.audit_picks)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -218,13 +218,17 @@ class ObservationBuilder:
             self._asset_index = {a.asset_id: i for i, a in enumerate(library_assets(self._library()))}
         return self._asset_index
 
+    def state(self, scene: "Scene", sim: "Simulator") -> dict[str, Any]:
+        """The privileged ``state_dict`` entries of the live scene, in any mode (``ParcelPickEnv.privileged_state``)."""
+        return state_dict(scene, sim, self._index())
+
     def build(self, frame: "CameraFrame", scene: "Scene", sim: "Simulator", spec: BinSpec, rng: np.random.Generator,
               normals_at: "Callable[[CameraFrame, np.ndarray], np.ndarray] | None" = None) -> dict[str, Any]:
         """One observation. The cloud is sampled in every mode, so ``rng`` advances the same way; a frame
         without normals gets them from ``normals_at`` at the sampled points (``sample_cloud``)."""
         points, normals = sample_cloud(frame, spec, self.config.num_points, rng, normals_at)
         if self.mode == "state_dict":
-            return {**state_dict(scene, sim, self._index()), "points": points, "normals": normals}
+            return {**self.state(scene, sim), "points": points, "normals": normals}
         images = {"rgb": frame.rgb.astype(np.uint8), "depth": frame.depth[..., None].astype(np.float32)}
         if self.mode == "rgbd":
             return images

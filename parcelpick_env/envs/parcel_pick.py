@@ -351,6 +351,11 @@ class ParcelPickEnv(gym.Env):
                 self.recorder = None
         return obs, reward, terminated, truncated, info
 
+    def privileged_state(self) -> dict[str, Any]:
+        """The scene's true state as ``obs_mode="state_dict"`` gives it (without the cloud), whatever this env's
+        obs_mode: for evaluators that judge a pick (``eval/pick_audit.py``), never for a policy's input."""
+        return self._observation.state(_after_reset(self.scene, "scene"), self.sim)
+
     def render(self):
         if self.render_mode != "rgb_array":
             return None
