@@ -402,6 +402,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ablation-seeds", nargs="+", type=int, default=list(d.report.ablation_seeds),
                    help="training seeds of every ablation variant (--train trains each)")
     p.add_argument("--skip-clearance", action="store_true")
+    p.add_argument("--no-audit-picks", dest="audit_picks", action="store_false",
+                   help="do not record which parcel each clearance pick took (eval/pick_audit.py)")
     p.add_argument("--skip-ablations", action="store_true")
     p.add_argument("--skip-benchmarks", action="store_true")
     p.add_argument("--force", nargs="*", default=[], metavar="PREFIX", help="redo the parts whose names start so")
@@ -417,7 +419,8 @@ def config_from_args(args: argparse.Namespace) -> ResultsConfig:
                           parcels=args.parcels, objects=tuple(args.objects), layouts=tuple(args.layouts),
                           seed=args.seed, workers=args.workers, backend=args.backend,
                           ray_address=args.ray_address, out=args.out,
-                          skip_clearance=args.skip_clearance, skip_ablations=args.skip_ablations,
+                          skip_clearance=args.skip_clearance, audit_picks=args.audit_picks,
+                          skip_ablations=args.skip_ablations,
                           ablation_dir=args.ablation_dir, ablation_seeds=tuple(args.ablation_seeds),
                           train_data=args.train_data, progress=False)
     return ResultsConfig(report=report, work=args.work, test_scenes=args.test_scenes, train=args.train,

@@ -378,6 +378,25 @@ def test_failure_anatomy_table_figure_and_provenance_are_in_the_report(report, t
     assert "## Paired comparisons with Diffusion-Suction" in md and "Diffusion-Suction − Cao et al." in md
 
 
+def test_the_report_shows_which_parcels_were_picked_where_every_cell_was_audited(report, tmp_path: Path):
+    from eval.report.tables import cover_table
+
+    assert cover_table(report["policies"]) is None  # nothing audited: no table, no section
+    plain = write_report(report, tmp_path / "a.md", tmp_path / "f")["markdown"].read_text()
+    assert "### Which parcels were picked" not in plain
+    audited = _clearance(3, 4, 3, 4)
+    log = audited["episodes"][0]["attempt_log"]
+    for k, attempt in enumerate(log):  # 3 held: 2 on free parcels, 1 on a covered one; the strike on a covered one
+        attempt["audit"] = {"parcel": k, "covered": k >= 2, "free_parcels": 1, "off_com_mm": 5.0, "to_surface_mm": 0.2}
+    summary = summarise([EpisodeResult(**audited["episodes"][0])])
+    summary["episodes"] = audited["episodes"]
+    policies = {**report["policies"], "diffusion": {**report["policies"]["diffusion"], "clearance": summary}}
+    table = cover_table(policies)
+    assert "| Diffusion-Suction | 2/2 (100%) | 1/2 (50%) | 2 | – |" in table
+    md = write_report({**report, "policies": policies}, tmp_path / "b.md", tmp_path / "g")["markdown"].read_text()
+    assert "### Which parcels were picked" in md and table in md
+
+
 def _full_ap(qualities: list[list[float]], visibility: float, cost: dict[str, float], quality: str,
              parcels: int = 3, nms_radius: float = 0.02) -> dict:
     """What evaluate_ap returns, from hand-made qualities: AP, AP+vis (each quality times ``visibility``), the

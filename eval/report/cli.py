@@ -40,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=d.out, help="markdown report; the JSON dump goes beside it")
     p.add_argument("--figures", default=None, help="PNG folder (<out folder>/figures when omitted)")
     p.add_argument("--skip-clearance", action="store_true")
+    p.add_argument("--no-audit-picks", dest="audit_picks", action="store_false",
+                   help="do not record which parcel each clearance pick took (eval/pick_audit.py)")
     p.add_argument("--clearance-from", default=None, metavar="JSON",
                    help="reuse the clearance results of an earlier report's JSON (labelled as reused) instead of "
                    "re-running them")
@@ -75,7 +77,8 @@ def main(argv: list[str] | None = None) -> int:
                               episodes=args.episodes, parcels=args.parcels, objects=tuple(args.objects),
                               layouts=tuple(args.layouts), seed=args.seed, workers=args.workers,
                               backend=args.backend, ray_address=args.ray_address, out=args.out, figures=args.figures,
-                              skip_clearance=args.skip_clearance, clearance_from=args.clearance_from,
+                              skip_clearance=args.skip_clearance, audit_picks=args.audit_picks,
+                              clearance_from=args.clearance_from,
                               skip_ablations=args.skip_ablations,
                               skip_paper_compat=args.skip_paper_compat, label_physics=args.label_physics,
                               diffusion_checkpoint=args.diffusion_checkpoint, ablation_dir=args.ablation_dir,

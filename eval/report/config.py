@@ -77,6 +77,8 @@ class ReportConfig:
     out: str = "results/RESULTS.md"
     figures: str | None = None  # None: <out's folder>/figures
     skip_clearance: bool = False
+    # record which parcel each clearance pick took and whether others rested on it (eval/pick_audit.py)
+    audit_picks: bool = True
     # an earlier report's JSON whose clearance results are reused (labelled as such) instead of re-running them
     clearance_from: str | None = None
     skip_ablations: bool = False

@@ -27,6 +27,7 @@ from eval.report.tables import (
     ap_results,
     channel_cost_table,
     comparison_table,
+    cover_table,
     differences,
     distinct_results,
     failure_details,
@@ -145,6 +146,14 @@ def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out
                   failure_table(policies, tuple(cfg["objects"]), tuple(cfg["layouts"])), "",
                   *failure_details(policies), ""]
         lines += _figure(figures, "failures", "failure causes per cell", out)
+        covers = cover_table(policies)
+        if covers is not None:
+            lines += ["### Which parcels were picked", "",
+                      "Each attempt's parcel, read on the true scene just before the pick by the evaluator "
+                      "(`--audit-picks`, eval/pick_audit.py; never shown to a policy): free, or covered (another "
+                      "parcel rests on it, hangs over it or leans on it above its centre of mass; the oracle's own "
+                      "geometry). Lifts of covered parcels are where the torsion drops of stacked piles come from.",
+                      "", covers, ""]
     lines += ["## Diffusion-Suction ablations (paper Tables III and IV)", ""]
     if cfg["skip_ablations"]:
         lines += ["Skipped (--skip-ablations).", ""]

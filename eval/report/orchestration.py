@@ -167,7 +167,8 @@ def evaluate_policy_clearance(name: str, config: ReportConfig, objects: tuple[st
     clearance = ClearanceConfig(policy=name, objects=objects or config.objects, layouts=layouts or config.layouts,
                                 episodes=config.episodes, num_parcels=config.parcels, seed=config.seed,
                                 workers=config.workers, backend=config.backend, ray_address=config.ray_address,
-                                checkpoint=_policy_kwargs(name, config).get("checkpoint"))
+                                checkpoint=_policy_kwargs(name, config).get("checkpoint"),
+                                audit_picks=config.audit_picks)
     return _guarded(f"clearance of {name}", lambda: evaluate_clearance(clearance, progress=config.progress))
 
 

@@ -349,6 +349,26 @@ def failure_kinds(policies: dict[str, dict[str, Any]]) -> list[str]:
     return sorted(totals, key=lambda k: (-totals[k], k))
 
 
+def _held(row: dict[str, int] | None) -> str:
+    return "–" if not row else f"{row['successes']}/{row['attempts']} ({100 * row['successes'] / row['attempts']:.0f}%)"
+
+
+def cover_table(policies: dict[str, dict[str, Any]]) -> str | None:
+    """Held / picks on free parcels and on parcels others rest or lean on (``--audit-picks``, eval/pick_audit.py),
+    per method whose every cell was audited; None when none was."""
+    head = ["method", "held / picks of free parcels", "held / picks of covered parcels",
+            "covered, taken while a free one was left", "held / picks off every parcel"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for entry in policies.values():
+        summary = entry.get("clearance")
+        if summary is None or not all("by_cover" in cell for cell in summary["cells"].values()):
+            continue
+        rows = summary["overall"]["by_cover"]
+        lines.append(f"| {entry['label']} | {_held(rows.get('free'))} | {_held(rows.get('covered'))} | "
+                     f"{rows.get('covered', {}).get('while_free_left', 0)} | {_held(rows.get('none'))} |")
+    return "\n".join(lines) if len(lines) > 2 else None
+
+
 def failure_table(policies: dict[str, dict[str, Any]], objects=OBJECT_SETS, layouts=LAYOUTS) -> str:
     """Failed attempts per method, failure kind ('outcome: phase') and cell, and over all cells."""
     cells = [f"{o}/{la}" for o in objects for la in layouts]
