@@ -326,7 +326,7 @@ def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) 
         where = {"free": "on free parcels", "covered": "on parcels others rest on", "none": "off every parcel"}
         lines.append("Picks (--audit-picks), successes / attempts: " + ", ".join(
             f"{where[kind]} {row['successes']}/{row['attempts']}" for kind, row in o["by_cover"].items())
-            + f"; on a covered parcel while a free one was left: "
+            + "; on a covered parcel while a free one was left: "
               f"{o['by_cover'].get('covered', {}).get('while_free_left', 0)}")
     return "\n".join(lines)
 

@@ -29,7 +29,7 @@ class PickAudit:
     parcel: int  # row of the parcel whose true surface is nearest the pick point, or NO_PARCEL
     covered: bool | None  # another parcel rests or leans on it (None without a parcel)
     off_com_mm: float | None  # horizontal distance from the pick point to that parcel's centre of mass
-    to_surface_mm: float  # from the pick point to the nearest true parcel surface
+    to_surface_mm: float | None  # from the pick point to the nearest true parcel surface (None: no parcel left)
     free_parcels: int  # parcels in the bin that no other rests or leans on: could it have taken one?
 
     def to_dict(self) -> dict[str, Any]:
@@ -48,7 +48,7 @@ def audit_truth(truth: GroundTruth, point: np.ndarray, max_distance: float = 0.0
     covered = covered_parcels(truth)
     free = int((~covered).sum())
     if not truth.meshes:
-        return PickAudit(NO_PARCEL, None, None, float("inf"), free)
+        return PickAudit(NO_PARCEL, None, None, None, free)
     scene = trimesh.util.concatenate(truth.meshes)
     owner = np.repeat(np.arange(len(truth.meshes)), [len(m.faces) for m in truth.meshes])
     _, distance, triangle = trimesh.proximity.closest_point(scene, point[None])
