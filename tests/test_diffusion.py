@@ -577,3 +577,37 @@ def test_train_cli_sets_the_ddim_sampler():
     cfg = make_config(parse_args(["--synthetic", "4", "--timestep-spacing", "trailing", "--eta", "0.2"]))
     assert (cfg.timestep_spacing, cfg.eta) == ("trailing", 0.2)
     assert make_config(parse_args(["--synthetic", "4"])).timestep_spacing == DiffusionConfig().timestep_spacing
+
+
+def test_train_cli_warm_starts_from_a_checkpoint_and_keeps_its_record(tmp_path, capsys):
+    import hashlib
+    import json
+
+    from policies.diffusion.train import main
+
+    common = ["--synthetic", "4", "--preset", "tiny", "--num-points", "256", "--inference-steps", "3",
+              "--batch-size", "2", "--val-every", "2", "--val-scenes", "1", "--threads", "1", "--no-progress"]
+    main(common + ["--out", str(tmp_path / "a"), "--steps", "4"])
+    start = tmp_path / "a" / "last.pt"
+    a = load_checkpoint(start)
+    main(common + ["--out", str(tmp_path / "b"), "--steps", "2", "--init", str(start)])
+    b = load_checkpoint(tmp_path / "b" / "last.pt")
+    # the warm start's first validation is the start model's own (same weights, scenes and noise)
+    base = json.loads((tmp_path / "b" / "log.jsonl").read_text().splitlines()[0])
+    assert base["step"] == 0 and base["val_loss"] == pytest.approx(a["extra"]["metrics"]["val_loss"], rel=1e-6)
+    record = b["extra"]["init"]
+    assert record["step"] == 4 and record["checkpoint"] == str(start)
+    assert record["sha256"] == hashlib.sha256(start.read_bytes()).hexdigest()
+    assert record["provenance"]["command"] == a["extra"]["provenance"]["command"]
+    assert b["step"] == 2 and "--init" in b["extra"]["provenance"]["command"]
+    # best.pt only where validation beat the start model's
+    if (tmp_path / "b" / "best.pt").is_file():
+        assert load_checkpoint(tmp_path / "b" / "best.pt")["extra"]["best_ap_proxy"] > base["val_ap_proxy"]
+    else:
+        assert "was not written" in capsys.readouterr().err
+    # a start model of another config is refused, naming the field
+    with pytest.raises(SystemExit, match="--init .*num_points"):
+        main(common[:4] + ["--num-points", "128"] + common[6:] + ["--out", str(tmp_path / "c"), "--steps", "2",
+                                                                 "--init", str(start)])
+    with pytest.raises(SystemExit):  # --init and --resume say two different things
+        main(common + ["--out", str(tmp_path / "b"), "--steps", "4", "--resume", "--init", str(start)])

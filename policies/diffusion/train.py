@@ -3,11 +3,15 @@
     python -m policies.diffusion.train --data DIR --out runs/diffusion --preset cpu --steps 5000 --batch-size 4
 
 Resumable (``--resume`` continues from OUT/last.pt with the same data order and noise), deterministic under --seed.
+``--init CHECKPOINT`` warm-starts from a trained model's weights: a fresh optimizer and learning-rate schedule over
+``--steps``, and the start model's validation is the bar that ``best.pt`` must beat. The start checkpoint's own
+record (step, provenance, SHA-256) is kept in every checkpoint the run writes, so the chain stays reproducible.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -27,6 +31,7 @@ from parcelpick_env.cli import (
     run_cli,
 )
 from parcelpick_env.suction.quality import LABEL_SETS
+from policies.checkpoint_io import load_weights
 from policies.diffusion.checkpoint import load_checkpoint, save_checkpoint
 from policies.diffusion.config import TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
@@ -100,7 +105,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--workers", type=int, default=0, help="DataLoader workers (neighbourhoods are computed there)")
     p.add_argument("--val-every", type=int, default=200)
-    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    start = p.add_mutually_exclusive_group()
+    start.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    start.add_argument("--init", type=Path, metavar="CHECKPOINT",
+                       help="warm-start from this checkpoint's weights (its config must match the flags); a fresh "
+                            "optimizer and schedule, and best.pt only where validation beats the start model's")
     p.add_argument("--no-progress", action="store_true")
     return p.parse_args(argv)
 
@@ -211,6 +220,7 @@ def train(args: argparse.Namespace) -> dict[str, float]:
     optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     start, best = 0, -1.0
     last = args.out / "last.pt"
+    init: dict[str, Any] | None = None  # the warm start's record, kept in every checkpoint of the run
     if args.resume:
         payload = load_checkpoint(last, map_location=device)
         if payload["config"] != config:
@@ -218,6 +228,9 @@ def train(args: argparse.Namespace) -> dict[str, float]:
         model.load_state_dict(payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
         start, best = payload["step"], payload["extra"].get("best_ap_proxy", -1.0)
+        init = payload["extra"].get("init")
+    elif args.init is not None:
+        init = warm_start(model, args.init, config, device)
     train_set, val_set = make_datasets(args, config)
     bs = min(args.batch_size, len(train_set))
     per_epoch = max(1, len(train_set) // bs)
@@ -229,13 +242,16 @@ def train(args: argparse.Namespace) -> dict[str, float]:
 
     bar = tqdm(total=total, initial=start, disable=args.no_progress, desc="train", file=sys.stderr)
     metrics: dict[str, float] = {}
+    improved = False  # whether this invocation wrote best.pt
     model.train()
     t0 = time.perf_counter()
     step = start
-    if start == 0 and total > 0:  # the untrained baseline, so the log shows what training bought
+    if start == 0 and total > 0:  # the untrained (or warm-start) baseline, so the log shows what training bought
         base = {"step": 0, **validate(model, val_loader, device, args.seed, args.val_scenes)}
         log.write(json.dumps(base) + "\n")
         bar.write(json.dumps(base))
+        if init is not None:  # a warm start is kept only where it improves on where it started
+            best = base["val_ap_proxy"]
     while step < total:
         epoch, offset = divmod(step, per_epoch)
         _set_epoch(train_set, epoch)
@@ -263,15 +279,42 @@ def train(args: argparse.Namespace) -> dict[str, float]:
                 extra = {"best_ap_proxy": best, "metrics": metrics,
                          "provenance": training_provenance(getattr(args, "command", "not recorded"), args.seed,
                                                            args.data, started)}
+                if init is not None:
+                    extra["init"] = init
                 save_checkpoint(last, model, optimizer, step, extra)
                 if is_best:
                     save_checkpoint(args.out / "best.pt", model, None, step, extra)
+                    improved = True
                 log.write(json.dumps(metrics) + "\n")
                 log.flush()
                 bar.write(json.dumps(metrics))
     bar.close()
     log.close()
+    if init is not None and start == 0 and not improved:
+        print(f"no validation improved on --init's ({best:.4f}): {args.out / 'best.pt'} was not written",
+              file=sys.stderr)
     return metrics
+
+
+def warm_start(model: DiffusionSuction, path: Path, config: DiffusionConfig, device: torch.device) -> dict[str, Any]:
+    """Load ``path``'s weights into ``model`` (same config, else SystemExit naming the fields) and return its record:
+    file, SHA-256, step and the provenance of the run that made it."""
+    try:
+        payload = load_checkpoint(path, map_location=device)
+    except (FileNotFoundError, ValueError) as e:
+        raise SystemExit(f"error: --init {e}") from e
+    stored: DiffusionConfig = payload["config"]
+    diff = {k: (getattr(config, k), v) for k, v in stored.to_dict().items() if getattr(config, k) != v}
+    if diff:
+        raise SystemExit(f"error: --init {path} has another config (flags, checkpoint): {diff}; match the flags")
+    try:
+        load_weights(model, payload["model"], path, "Diffusion-Suction")
+    except ValueError as e:
+        raise SystemExit(f"error: --init {e}") from e
+    extra = payload.get("extra", {})
+    return {"checkpoint": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "step": int(payload.get("step", 0)), "provenance": extra.get("provenance", "not recorded"),
+            "init": extra.get("init")}  # a chain of warm starts stays whole
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -283,6 +326,8 @@ def main(argv: list[str] | None = None) -> None:
     check_output_path(args.out, "--out", directory=True)
     if args.resume:
         check_input_file(args.out / "last.pt", "--resume")
+    if args.init is not None:
+        check_input_file(args.init, "--init")
     train(args)
 
 
