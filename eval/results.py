@@ -7,7 +7,8 @@ ablations and the benchmarks, and writes ``results/RESULTS.md`` (+ JSON and figu
 generation are spread over its CPUs).
 
 It is resumable. The work is a list of small parts (the test data, one AP run per policy, one clearance run
-per policy and cell, the ablations, one benchmark script each); a finished part writes its JSON under
+per policy and cell, the ablations in two (the rows that read the main checkpoint, and the variants trained on
+their own), one benchmark script each); a finished part writes its JSON under
 ``--work`` atomically, and a re-run skips every part whose JSON exists, so an interrupted run redoes only
 what was unfinished. ``--force PREFIX`` redoes the parts whose names start with it.
 
@@ -19,6 +20,8 @@ only the clearance; the report names every restored part and where it came from.
     python -m eval.results --backend ray --workers 32 --ray-address auto
     python -m eval.results --list                # the parts and which are done
     python -m eval.results --restore results/RESULTS.json --force clearance   # the cell changed: clearance only
+    python -m eval.results --restore results/RESULTS.json \
+        --force ap/diffusion ablations/main paper_compat clearance/diffusion      # a new shipped Diffusion-Suction
 """
 
 from __future__ import annotations
@@ -219,8 +222,11 @@ def plan(cfg: ResultsConfig) -> list[Part]:
     if not r.skip_paper_compat and set(PAPER_COMPAT_POLICIES) & set(r.policies):
         parts.append(Part("paper_compat", work / "paper_compat.json", lambda: _paper_compat(cfg),
                           tuple(f"ap/{name}" for name in PAPER_COMPAT_POLICIES if name in r.policies)))
-    if not r.skip_ablations:
-        parts.append(Part("ablations", work / "ablations.json", lambda: _ablations(cfg), (f"ap/{DIFFUSION}",)))
+    if not r.skip_ablations:  # the rows that read the main checkpoint re-run with it; the trained variants' do not
+        parts += [Part("ablations/main", work / "ablations" / "main.json", lambda: _ablations(cfg, "main"),
+                       (f"ap/{DIFFUSION}",)),
+                  Part("ablations/trained", work / "ablations" / "trained.json", lambda: _ablations(cfg, "trained"),
+                       ("data/test",))]
     if cfg.benchmarks:
         parts += [Part(f"bench/{s.stem}", work / "bench" / f"{s.stem}.json", _bench_part(s))
                   for s in sorted((REPO / cfg.bench_dir).glob("bench_*.py"))]
@@ -245,6 +251,10 @@ def _restored_value(name: str, source: dict[str, Any]) -> tuple[bool, Any]:
     if name.startswith("ap/"):
         entry = source["policies"].get(name.split("/", 1)[1])
         return entry is not None, None if entry is None else {**entry, "clearance": None, "clearance_error": None}
+    if name.startswith("ablations/"):  # a report holds one list: each part takes the rows it measures
+        main = {"inference_steps", "same_as_inference"}
+        rows = [row for row in source.get("ablations") or [] if (row.get("kind") in main) == name.endswith("/main")]
+        return bool(rows), rows
     rows = source.get(name)
     return bool(rows), rows
 
@@ -291,9 +301,9 @@ def restored_parts(parts: Sequence[Part]) -> dict[str, Any] | None:
     return {"sources": list(found.values())} if found else None
 
 
-def _ablations(cfg: ResultsConfig) -> list[dict[str, Any]]:
+def _ablations(cfg: ResultsConfig, part: str) -> list[dict[str, Any]]:
     main = _value(Path(cfg.work) / "ap" / f"{DIFFUSION}.json")
-    return orchestration.evaluate_ablations(cfg.report, (main or {}).get("ap"))
+    return orchestration.evaluate_ablations(cfg.report, (main or {}).get("ap"), part=part)
 
 
 def _paper_compat(cfg: ResultsConfig) -> list[dict[str, Any]]:
@@ -326,7 +336,8 @@ def assemble(cfg: ResultsConfig) -> dict[str, Any]:
                 entry["clearance_error"] = "; ".join(errors + ([f"{missing} cell(s) unfinished"] if missing else []))
         policies[name] = orchestration.finish_entry(entry, r)
     return {"generated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), "config": asdict(r),
-            "policies": policies, "ablations": [] if r.skip_ablations else (_value(work / "ablations.json") or []),
+            "policies": policies, "ablations": [] if r.skip_ablations else orchestration.merge_ablations(
+                *(_value(work / "ablations" / f"{part}.json") or [] for part in orchestration.ABLATION_PARTS)),
             "paper_compat": [] if r.skip_paper_compat else (_value(work / "paper_compat.json") or []),
             "label_physics": orchestration.read_label_physics(r.label_physics),
             "provenance": orchestration.provenance(r), "restored": restored_parts(plan(cfg))}

@@ -336,6 +336,14 @@ def test_step_count_variants_are_the_inference_rows_when_training_never_samples(
     assert rows["steps5"]["command"] is None and "map_loss_weight = 0" in rows["steps5"]["reason"]
     assert rows["steps10"]["status"] == "not trained"  # no inference row at 10 steps to stand in for it
     assert "map_loss_weight = 0" in ablation_table(list(rows.values()))
+    # The report runs them as two parts: the rows that read the main checkpoint, and the variants trained apart.
+    main_rows = evaluate_ablations(config, main_ap=main_ap, part="main")
+    trained_rows = evaluate_ablations(config, main_ap=main_ap, part="trained")
+    assert {r["name"] for r in main_rows} == {"infer5", "steps5"}
+    assert "steps5" not in {r["name"] for r in trained_rows} and "steps10" in {r["name"] for r in trained_rows}
+    assert orchestration.merge_ablations(main_rows, trained_rows) == list(rows.values())
+    with pytest.raises(ValueError, match="part must be one of"):
+        evaluate_ablations(config, part="steps")
 
 
 def _scored(per_scene_ap: np.ndarray) -> dict:

@@ -86,7 +86,8 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg, fresh=False: lambda: calls.update(["data"]) or {})
     monkeypatch.setattr(orchestration, "evaluate_policy_ap", lambda name, cfg: calls.update([f"ap/{name}"])
                         or _fake_ap(name, cfg))
-    monkeypatch.setattr(orchestration, "evaluate_ablations", lambda cfg, main_ap: calls.update(["ablations"]) or [])
+    monkeypatch.setattr(orchestration, "evaluate_ablations",
+                        lambda cfg, main_ap, part=None: calls.update([f"ablations/{part}"]) or [])
     monkeypatch.setattr(orchestration, "evaluate_paper_compat", lambda cfg, entries: calls.update(["paper_compat"])
                         or [{"name": n, "label": e["label"], "status": "ok", "reason": None, "errors": {},
                              "results": {"suctionnet": e["ap"], "nms": e["ap"]}} for n, e in entries.items()])
@@ -95,7 +96,8 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     names = [p.name for p in results.plan(cfg)]
     assert names == ["data/test", "ap/diffusion", "ap/cao", "clearance/diffusion/rectangular-scattered",
                      "clearance/diffusion/rectangular-stacked", "clearance/cao/rectangular-scattered",
-                     "clearance/cao/rectangular-stacked", "paper_compat", "ablations", "bench/bench_tiny"]
+                     "clearance/cao/rectangular-stacked", "paper_compat", "ablations/main", "ablations/trained",
+                     "bench/bench_tiny"]
     with pytest.raises(KeyboardInterrupt):
         results.regenerate(cfg, log=lambda _: None)
     first = Counter(calls)
@@ -103,9 +105,10 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     out = results.regenerate(cfg, log=lambda _: None)
     redone = calls - first
     # the interrupted cell and what came after
-    assert redone == {"cao/rectangular-stacked": 1, "paper_compat": 1, "ablations": 1}
+    assert redone == {"cao/rectangular-stacked": 1, "paper_compat": 1, "ablations/main": 1, "ablations/trained": 1}
     assert [n for n, s in out["status"].items() if s == "ran"] == ["clearance/cao/rectangular-stacked", "paper_compat",
-                                                                    "ablations", "bench/bench_tiny"]
+                                                                    "ablations/main", "ablations/trained",
+                                                                    "bench/bench_tiny"]
     md = Path(out["paths"]["markdown"]).read_text()
     assert "### Cao et al." in md and "33.33 [" in md and "dropped: lift" in md  # 1/3 pooled, with its interval
     # the paper-compatible rows of the methods it takes (Diffusion-Suction here, from its AP part)
@@ -177,7 +180,8 @@ def test_list_shows_done_and_todo(tmp_path: Path, capsys):
                          "--objects", "mixed", "--layouts", "stacked", "--skip-benchmarks", "--list"]) == 0
     listed = capsys.readouterr().out.splitlines()
     # no paper_compat part: neither the label oracle nor Diffusion-Suction is asked for
-    assert listed == ["todo  data/test", "todo  ap/random", "todo  clearance/random/mixed-stacked", "todo  ablations"]
+    assert listed == ["todo  data/test", "todo  ap/random", "todo  clearance/random/mixed-stacked", "todo  ablations/main",
+                      "todo  ablations/trained"]
 
 
 def test_training_generates_each_variants_own_split_once_before_the_runs_that_read_it(tmp_path: Path):
@@ -210,9 +214,11 @@ def _fake_everything(monkeypatch, tmp_path: Path, calls: Counter) -> None:
     monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg, fresh=False: lambda: calls.update(["data"]) or {})
     monkeypatch.setattr(orchestration, "evaluate_policy_ap", lambda name, cfg: calls.update([f"ap/{name}"])
                         or _fake_ap(name, cfg))
-    monkeypatch.setattr(orchestration, "evaluate_ablations", lambda cfg, main_ap: calls.update(["ablations"])
-                        or [{"name": "reference", "kind": "trained", "description": "reference", "status": "ok", "reason": None,
-                             "ap": main_ap}])
+    def ablations(cfg, main_ap, part=None):  # one step-count row reads the main checkpoint, one variant does not
+        calls.update([f"ablations/{part}"])
+        kind, name = ("inference_steps", "infer5") if part == "main" else ("trained", "reference")
+        return [{"name": name, "kind": kind, "description": name, "status": "ok", "reason": None, "ap": main_ap}]
+    monkeypatch.setattr(orchestration, "evaluate_ablations", ablations)
     monkeypatch.setattr(orchestration, "evaluate_paper_compat", lambda cfg, entries: calls.update(["paper_compat"])
                         or [{"name": n, "label": e["label"], "status": "ok", "reason": None, "errors": {},
                              "results": {"suctionnet": e["ap"]}} for n, e in entries.items()])
@@ -235,7 +241,7 @@ def test_restore_reruns_only_the_clearance_and_the_report_names_what_it_restored
     out = results.regenerate(fresh, log=lambda _: None)
     assert calls == {f"{n}/rectangular-{la}": 1 for n in ("diffusion", "cao") for la in ("scattered", "stacked")}
     dump = json.loads(Path(out["paths"]["json"]).read_text())
-    restored = ["data/test", "ap/diffusion", "ap/cao", "paper_compat", "ablations"]
+    restored = ["data/test", "ap/diffusion", "ap/cao", "paper_compat", "ablations/main", "ablations/trained"]
     assert dump["restored"]["sources"] == [{"path": str(source), "generated": earlier["generated"],
                                             "parts": restored}]
     for name in ("diffusion", "cao"):  # the AP is the earlier one, the clearance this run's
@@ -243,7 +249,8 @@ def test_restore_reruns_only_the_clearance_and_the_report_names_what_it_restored
         assert dump["policies"][name]["clearance"]["overall"] == earlier["policies"][name]["clearance"]["overall"]
     assert dump["ablations"] == earlier["ablations"] and dump["paper_compat"] == earlier["paper_compat"]
     md = Path(out["paths"]["markdown"]).read_text()
-    assert ("**Restored, not re-run:** `data/test`, `ap/diffusion`, `ap/cao`, `paper_compat`, `ablations`, from "
+    assert ("**Restored, not re-run:** `data/test`, `ap/diffusion`, `ap/cao`, `paper_compat`, `ablations/main`, "
+            "`ablations/trained`, from "
             f"`{source}`") in md
     # A plain re-run of the restored work has nothing to do, and still names the restored parts.
     calls.clear()
@@ -256,6 +263,16 @@ def test_restore_reruns_only_the_clearance_and_the_report_names_what_it_restored
     calls.clear()
     results.regenerate(redo, log=lambda _: None)
     assert calls["ap/cao"] == 1 and calls["ap/diffusion"] == 0
+    # A new main checkpoint: its AP and the ablation rows that read it run again; the trained variants' rows (whose
+    # checkpoints need not be on this machine) are restored, and the page keeps both, step counts first.
+    new_main = results.ResultsConfig(report=cfg.report, work=str(tmp_path / "work4"), bench_dir=cfg.bench_dir,
+                                     restore=str(source), force=("ap/diffusion", "ablations/main"))
+    calls.clear()
+    out = results.regenerate(new_main, log=lambda _: None)
+    assert calls["ap/diffusion"] == 1 and calls["ablations/main"] == 1 and calls["ablations/trained"] == 0
+    dump = json.loads(Path(out["paths"]["json"]).read_text())
+    assert [row["name"] for row in dump["ablations"]] == ["infer5", "reference"]
+    assert dump["ablations"][1] == earlier["ablations"][1]
 
 
 def test_restore_refuses_a_report_measured_on_other_test_scenes_or_not_a_report(tmp_path: Path, monkeypatch, capsys):

@@ -12,7 +12,7 @@ import json
 import sys
 import traceback
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -277,17 +277,26 @@ def _trained_runs(variant: TrainedVariant, config: ReportConfig) -> list[dict[st
     return runs
 
 
-def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+ABLATION_PARTS = ("main", "trained")  # the rows that read the main checkpoint, and those of variants trained apart
+
+
+def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = None,
+                       part: str | None = None) -> list[dict[str, Any]]:
     """Inference-step counts on the main checkpoint (no retraining), then every trained variant found, per seed.
 
     ``main_ap``: the main Diffusion-Suction AP already computed on the same scenes, reused for the row
     whose step count is the trained one instead of running it twice. A trained variant's ``ap`` is the mean over
     its measured seeds (``seed_runs.seed_mean_ap``); each seed's own result is under ``runs``.
+    ``part`` 'main' gives only the rows that read the main checkpoint (the step counts, and the step-count variants
+    that are the same network), 'trained' only the others: a new main checkpoint re-runs the first alone
+    (``merge_ablations`` puts them back in order). None: all.
     """
+    if part is not None and part not in ABLATION_PARTS:
+        raise ValueError(f"part must be one of {ABLATION_PARTS} or None, got {part!r}")
     rows: list[dict[str, Any]] = []
     base, why = load_policy(DIFFUSION, **_policy_kwargs(DIFFUSION, config))
     trained_with = int(base.config.inference_steps) if base is not None else None
-    for k in config.ablation_steps:
+    for k in (() if part == "trained" else config.ablation_steps):
         row = {"name": f"infer{k}", "kind": "inference_steps", "inference_steps": k,
                "description": f"main checkpoint, sampled with {k} DDIM steps"
                               + (f" (trained with {trained_with})" if trained_with else ""),
@@ -310,11 +319,16 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
         row = {"name": variant.name, "kind": "trained", "description": variant.description,
                "paper": list(variant.paper) if variant.paper else None, "ap": None, "reason": None, "runs": [],
                "baseline": variant.baseline, "test_data": variant_config(variant, config).test_data}
-        if variant.steps is not None and step_free and variant.steps in sampled:
-            row.update(kind="same_as_inference", checkpoint=sampled[variant.steps]["checkpoint"], command=None,
-                       ap=sampled[variant.steps]["ap"], status="ok",
+        reads_main = variant.steps is not None and step_free and variant.steps in config.ablation_steps
+        if reads_main != (part == "main") and part is not None:
+            continue
+        if reads_main:
+            found = sampled.get(variant.steps)
+            row.update(kind="same_as_inference", checkpoint=config.diffusion_checkpoint or "(shipped)", command=None,
+                       ap=None if found is None else found["ap"], status="ok" if found else "failed",
                        reason=f"the main network sampled with {variant.steps} steps: its training never runs the "
-                              f"sampler, as map_loss_weight = 0")
+                              f"sampler, as map_loss_weight = 0" if found else
+                              f"the main network sampled with {variant.steps} steps has no AP")
             rows.append(row)
             continue
         row["runs"] = _trained_runs(variant, config)
@@ -342,6 +356,14 @@ def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = No
         failed = [f"seed {r['seed']}: {r['reason']}" for r in runs if r["status"] == "failed"]
         row["reason"] = "; ".join(failed) or None
     return rows
+
+
+def merge_ablations(main: Sequence[dict[str, Any]], trained: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``evaluate_ablations``'s rows from its two parts: the step counts first, then the variants in
+    ``TRAINED_VARIANTS`` order, each from whichever part measured it."""
+    by_name = {row["name"]: row for row in [*main, *trained]}
+    steps = [row for row in main if row.get("kind") == "inference_steps"]
+    return steps + [by_name[v.name] for v in TRAINED_VARIANTS if v.name in by_name]
 
 
 def run_report(config: ReportConfig) -> dict[str, Any]:
