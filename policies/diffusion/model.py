@@ -9,7 +9,7 @@ from torch import nn
 
 from policies.diffusion.config import DiffusionConfig
 from policies.diffusion.pcdb import PCDB
-from policies.diffusion.pointnet2 import build_encoder
+from policies.diffusion.pointnet2 import build_encoder, gather
 from policies.diffusion.scheduler import DiffusionSchedule
 from policies.diffusion.segment_inputs import segment_channels, segment_features
 
@@ -33,11 +33,15 @@ class DiffusionSuction(nn.Module):
         return (x / (2.0 * self.config.scale) + 0.5).clamp(0.0, 1.0)
 
     # -- networks -------------------------------------------------------------------------------------------------
-    def encode(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    def encode(self, batch: Mapping[str, torch.Tensor], rows: torch.Tensor | None = None) -> torch.Tensor:
         """Per-point condition features (B, N, F); run once per scene. With ``segment_levers`` / ``segment_size``
-        the last channels are the batch's ``surface_levers`` / ``surface_size`` (``segment_inputs``)."""
-        features = self.encoder(batch)
+        the last channels are the batch's ``surface_levers`` / ``surface_size`` (``segment_inputs``).
+        ``rows`` (B, M): only those points' features, (B, M, F), as ``sample(point_index=rows)`` would read them,
+        for less work (the encoder's finest level runs on those rows alone)."""
+        features = self.encoder(batch, rows)
         extra = segment_features(batch, self.config, "decoder", features.dtype)
+        if rows is not None:
+            extra = [gather(e, rows) for e in extra]
         return torch.cat([features, *extra], dim=-1) if extra else features
 
     def _denoise_loop(self, cond: torch.Tensor, steps: int, generator: torch.Generator | None,
@@ -65,7 +69,6 @@ class DiffusionSuction(nn.Module):
         With ``return_trajectory`` also returns the maps after each step, (steps + 1, B, N, C), noise first.
         """
         if point_index is not None:
-            from policies.diffusion.pointnet2 import gather
             features = gather(features, point_index)
         cond = self.decoder.embed_condition(features)
         trajectory: list[torch.Tensor] | None = [] if return_trajectory else None

@@ -163,7 +163,9 @@ class PointNet2Encoder(nn.Module):
             coarse = out
         self.out_channels = config.feature_dim
 
-    def forward(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    def forward(self, batch: Mapping[str, torch.Tensor], rows: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, N, feature_dim), or (B, M, feature_dim) at ``rows`` (B, M): the finest feature propagation is
+        per point, so it then runs only where the decoder reads (8x fewer rows at 2,048 of 16,384 points)."""
         xyz = batch["points"]
         feats = point_features(batch, self.config)
         xyzs, featss = [xyz], [feats]
@@ -173,8 +175,12 @@ class PointNet2Encoder(nn.Module):
             featss.append(feats)
         coarse = featss[-1]
         for fp, l in zip(self.fp, range(self.levels, 0, -1)):
-            coarse = fp(featss[l - 1], coarse, batch[f"fp{l}_index"], batch[f"fp{l}_weight"])
-        return coarse  # (B, N, feature_dim)
+            skip, index, weight = featss[l - 1], batch[f"fp{l}_index"], batch[f"fp{l}_weight"]
+            if l == 1 and rows is not None:
+                skip = None if skip is None else gather(skip, rows)
+                index, weight = gather(index, rows), gather(weight, rows)
+            coarse = fp(skip, coarse, index, weight)
+        return coarse  # (B, N or M, feature_dim)
 
 
 class PointNetEncoder(nn.Module):
@@ -190,15 +196,17 @@ class PointNetEncoder(nn.Module):
         self.head = SharedMLP([_w(64, w) + _w(1024, w), _w(256, w), config.feature_dim])
         self.out_channels = config.feature_dim
 
-    def forward(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    def forward(self, batch: Mapping[str, torch.Tensor], rows: torch.Tensor | None = None) -> torch.Tensor:
         xyz = batch["points"]
         x = xyz - xyz.mean(dim=1, keepdim=True)
         feats = point_features(batch, self.config)
         if feats is not None:
             x = torch.cat([x, feats], dim=-1)
         local = self.local(x)
-        g = self.glob(local).amax(dim=1, keepdim=True).expand(-1, x.shape[1], -1)
-        return self.head(torch.cat([local, g], dim=-1))
+        g = self.glob(local).amax(dim=1, keepdim=True)
+        if rows is not None:  # the global feature needs every point; the head only the rows read
+            local = gather(local, rows)
+        return self.head(torch.cat([local, g.expand(-1, local.shape[1], -1)], dim=-1))
 
 
 def build_encoder(config: DiffusionConfig) -> nn.Module:

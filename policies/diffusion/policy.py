@@ -105,12 +105,12 @@ class DiffusionSuctionPolicy(Policy):
         if 0 < self.decode_points < len(points):
             subset = np.sort(grid_sample(points, self.decode_points))
         low = self.precision != "float32"
+        rows = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
         with torch.inference_mode():
             with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=low):
-                features = self.model.encode(tensors).float()
-            index = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
+                features = self.model.encode(tensors, rows).float()  # at the decoded points only
             out = self.model.sample(features, self.inference_steps, self._generator,
-                                    return_trajectory=self.record_trajectory, point_index=index)
+                                    return_trajectory=self.record_trajectory)
         scores, trajectory = out if self.record_trajectory else (out, None)
         if subset is not None:
             points, normals = points[subset], normals[subset]
