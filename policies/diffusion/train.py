@@ -31,8 +31,7 @@ from parcelpick_env.cli import (
     run_cli,
 )
 from parcelpick_env.suction.quality import LABEL_SETS
-from policies.checkpoint_io import load_weights
-from policies.diffusion.checkpoint import load_checkpoint, save_checkpoint
+from policies.diffusion.checkpoint import load_checkpoint, load_model, save_checkpoint
 from policies.diffusion.config import TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
 from policies.provenance import command_line, training_provenance
@@ -300,17 +299,10 @@ def warm_start(model: DiffusionSuction, path: Path, config: DiffusionConfig, dev
     """Load ``path``'s weights into ``model`` (same config, else SystemExit naming the fields) and return its record:
     file, SHA-256, step and the provenance of the run that made it."""
     try:
-        payload = load_checkpoint(path, map_location=device)
+        start, payload = load_model(path, map_location=device, expected=config)
     except (FileNotFoundError, ValueError) as e:
-        raise SystemExit(f"error: --init {e}") from e
-    stored: DiffusionConfig = payload["config"]
-    diff = {k: (getattr(config, k), v) for k, v in stored.to_dict().items() if getattr(config, k) != v}
-    if diff:
-        raise SystemExit(f"error: --init {path} has another config (flags, checkpoint): {diff}; match the flags")
-    try:
-        load_weights(model, payload["model"], path, "Diffusion-Suction")
-    except ValueError as e:
-        raise SystemExit(f"error: --init {e}") from e
+        raise SystemExit(f"error: --init {e}; match the flags to the checkpoint") from e
+    model.load_state_dict(start.state_dict())
     extra = payload.get("extra", {})
     return {"checkpoint": str(path), "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
             "step": int(payload.get("step", 0)), "provenance": extra.get("provenance", "not recorded"),
