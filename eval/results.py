@@ -252,8 +252,8 @@ def _restored_value(name: str, source: dict[str, Any]) -> tuple[bool, Any]:
         entry = source["policies"].get(name.split("/", 1)[1])
         return entry is not None, None if entry is None else {**entry, "clearance": None, "clearance_error": None}
     if name.startswith("ablations/"):  # a report holds one list: each part takes the rows it measures
-        main = {"inference_steps", "same_as_inference"}
-        rows = [row for row in source.get("ablations") or [] if (row.get("kind") in main) == name.endswith("/main")]
+        rows = [row for row in source.get("ablations") or []
+                if (row.get("kind") in orchestration.MAIN_ABLATION_KINDS) == name.endswith("/main")]
         return bool(rows), rows
     rows = source.get(name)
     return bool(rows), rows

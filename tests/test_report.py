@@ -340,6 +340,7 @@ def test_step_count_variants_are_the_inference_rows_when_training_never_samples(
     main_rows = evaluate_ablations(config, main_ap=main_ap, part="main")
     trained_rows = evaluate_ablations(config, main_ap=main_ap, part="trained")
     assert {r["name"] for r in main_rows} == {"infer5", "steps5"}
+    assert {r["kind"] for r in main_rows} == set(orchestration.MAIN_ABLATION_KINDS)
     assert "steps5" not in {r["name"] for r in trained_rows} and "steps10" in {r["name"] for r in trained_rows}
     assert orchestration.merge_ablations(main_rows, trained_rows) == list(rows.values())
     with pytest.raises(ValueError, match="part must be one of"):

@@ -278,6 +278,7 @@ def _trained_runs(variant: TrainedVariant, config: ReportConfig) -> list[dict[st
 
 
 ABLATION_PARTS = ("main", "trained")  # the rows that read the main checkpoint, and those of variants trained apart
+MAIN_ABLATION_KINDS = ("inference_steps", "same_as_inference")  # the kinds of row the 'main' part gives
 
 
 def evaluate_ablations(config: ReportConfig, main_ap: dict[str, Any] | None = None,
