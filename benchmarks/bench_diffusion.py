@@ -3,6 +3,11 @@ decoder x DDIM steps (and the diffusers scheduler's share alone), end-to-end pol
 Prints a markdown table.
 
     .venv/bin/python benchmarks/bench_diffusion.py [--threads 2] [--sizes 4096 8192 16384] [--repeats 3]
+    python benchmarks/bench_diffusion.py --device cuda [--checkpoint CKPT]   # on a lent GPU: the paper preset only
+
+With ``--device cuda`` the precompute still runs on the CPU (as in the policy) and the network on the GPU, timed
+with the device synchronised, in float32 and under bfloat16 autocast; ``--checkpoint`` times a trained model (its
+own config) instead of an untrained paper preset.
 """
 
 from __future__ import annotations
@@ -87,6 +92,52 @@ def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decod
             "predict (decode N)": t_pol, f"predict (decode {decode_points})": t_fast, "peak RSS MB": peak_mb()}
 
 
+def bench_cuda(cfg: DiffusionConfig, repeats: int, decode_points: int, checkpoint: str | None,
+               device: torch.device = torch.device("cuda")) -> list[dict]:
+    """The paper preset's inference with the network on the GPU: precompute on the CPU, then encoder and decoder."""
+    if checkpoint is not None:
+        from policies.diffusion.checkpoint import load_model
+
+        model, _ = load_model(checkpoint, map_location=device)
+        cfg = model.config
+    else:
+        model = build_model(cfg).to(device).eval()
+    model.encoder = fold_batchnorm(model.encoder)
+    n = cfg.num_points
+    scene = synthetic_scene(np.random.default_rng(0), n)
+    nb: dict = {}
+    t_nb = timed(lambda: nb.update(model_inputs(scene["points"], scene["normals"], cfg)), repeats)
+    batch = {k: torch.from_numpy(np.asarray(v)).unsqueeze(0).to(device) for k, v in {**scene, **nb}.items()}
+    sub = torch.arange(0, n, max(1, n // decode_points))[:decode_points].unsqueeze(0).to(device)
+
+    def synced(fn):
+        def run():
+            fn()
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+        return run
+
+    rows = []
+    for precision in ("float32", "bfloat16"):
+        def encode() -> torch.Tensor:
+            with torch.autocast(device.type, dtype=PRECISIONS[precision], enabled=precision != "float32"):
+                return model.encode(batch).float()
+
+        with torch.inference_mode():
+            feats = encode()
+            gen = torch.Generator(device=device)
+            t_enc = timed(synced(encode), repeats)
+            t_dec = timed(synced(lambda: model.sample(feats, generator=gen.manual_seed(0))), repeats)
+            t_sub = timed(synced(lambda: model.sample(feats, generator=gen.manual_seed(0), point_index=sub)), repeats)
+        rows.append({"config": "trained" if checkpoint else "paper (w=1.0)", "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
+                     "precision": precision, "N": n, "precompute (CPU)": t_nb, "encoder": t_enc,
+                     f"decoder x{cfg.inference_steps} (N)": t_dec,
+                     f"decoder x{cfg.inference_steps} ({decode_points} pts)": t_sub,
+                     "predict (decode N)": t_nb + t_enc + t_dec,
+                     f"predict (decode {decode_points})": t_nb + t_enc + t_sub})
+    return rows
+
+
 def bench_deploy(cfg: DiffusionConfig, n: int, repeats: int) -> dict:
     """The shipped CPU setting: an n-point observation grid-sampled down to cfg.num_points inside predict."""
     scene = synthetic_scene(np.random.default_rng(0), n)
@@ -141,11 +192,23 @@ def main() -> None:
     p.add_argument("--skip-train", action="store_true")
     p.add_argument("--skip-paper", action="store_true", help="only the CPU preset")
     p.add_argument("--cpu-time", action="store_true", help="report process CPU time instead of wall time")
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                   help="cuda: only the paper preset's inference, the network on the GPU")
+    p.add_argument("--checkpoint", help="with --device cuda: time this trained model instead of an untrained one")
     args = p.parse_args()
     global CLOCK
     if args.cpu_time:
         CLOCK = time.process_time
     torch.set_num_threads(args.threads)
+    if args.device == "cuda":
+        if not torch.cuda.is_available():
+            p.error("--device cuda but CUDA is not available")
+        rows = bench_cuda(DiffusionConfig(), max(args.repeats, 10), args.decode_points, args.checkpoint)
+        print(f"### Diffusion-Suction inference on the GPU, B=1, precompute on {args.threads} CPU threads, wall "
+              f"times in ms (median of {max(args.repeats, 10)})\n")
+        print(table(rows))
+        return
+
     def sized(n: int) -> dict:
         return dict(num_points=n, sa_npoints=tuple(n // d for d in (4, 16, 64, 256)), inference_steps=args.steps)
 

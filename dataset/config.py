@@ -21,7 +21,7 @@ from parcelpick_env.config_checks import (
     require_positive_ints,
 )
 from parcelpick_env.suction.config import SuctionConfig
-from parcelpick_env.suction.quality import LABEL_SETS
+from parcelpick_env.suction.label_sets import LABEL_SETS
 
 SPLITS = ("train", "test")
 LAYOUTS = ("stacked", "scattered")

@@ -46,7 +46,7 @@ from dataset.storage import (
     write_shard,
 )
 from parcelpick_env.cli import check_output_path, run_cli
-from parcelpick_env.suction.quality import LABEL_SETS
+from parcelpick_env.suction.label_sets import LABEL_SETS
 
 log = logging.getLogger(__name__)
 

@@ -10,12 +10,14 @@ Callers: the simulator's collision-hull vertex reduction (``sim/simulator.py``, 
 farthest from the mean), the dataset's fixed-size annotation sample (``dataset/annotate.py``, through
 ``fixed_size_sample``), and the diffusion policy's PointNet++ centres (``policies/diffusion/neighbourhood.py``).
 Open3D's tensor-API FPS was measured 100x slower (about 50 s for 16,384 of 32,768 points), so it is not used.
+Open3D is imported on first use, not with the module: the dataset reader and the policy's neighbourhoods import this
+module, and a trainer whose centres are grid-sampled (the default) then runs where Open3D is not installed (a GPU
+image, where its 0.9 GB cannot travel; docs/training.md).
 """
 
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 
 def _cloud(points: np.ndarray, name: str = "points") -> np.ndarray:
@@ -40,6 +42,8 @@ def farthest_point_indices(points: np.ndarray, k: int, start: int = 0) -> np.nda
         raise ValueError(f"start must be an index in [0, {n}), got {start!r}")
     if k >= n:
         return np.arange(n, dtype=np.int64)
+    import open3d as o3d  # on first use: see the module docstring
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     tags = np.zeros((n, 3))
     tags[:, 0] = np.arange(n)

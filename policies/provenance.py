@@ -32,15 +32,19 @@ SHIPPED: dict[str, tuple[str, ...]] = {
 }
 
 
+COMMIT_ENV = "PARCELPICK_GIT_COMMIT"
+
+
 def git_commit(root: str | os.PathLike = REPO) -> str:
-    """HEAD's hash, with '+dirty' when tracked files differ from it; NOT_RECORDED outside a git checkout."""
+    """HEAD's hash, with '+dirty' when tracked files differ from it. Outside a git checkout (a copy of the tree sent
+    to a lent machine), the commit that the sender names in ``PARCELPICK_GIT_COMMIT``, else NOT_RECORDED."""
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                               timeout=10, check=True).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
     except (OSError, subprocess.SubprocessError):
-        return NOT_RECORDED
+        return os.environ.get(COMMIT_ENV) or NOT_RECORDED
     return head + ("+dirty" if dirty else "")
 
 

@@ -628,3 +628,24 @@ def test_train_cli_warm_starts_from_a_checkpoint_and_keeps_its_record(tmp_path, 
                                                                  "--init", str(start)])
     with pytest.raises(SystemExit):  # --init and --resume say two different things
         main(common + ["--out", str(tmp_path / "b"), "--steps", "4", "--resume", "--init", str(start)])
+
+
+def test_train_cli_stops_at_max_minutes_validated_and_saved(tmp_path):
+    import json
+
+    from parcelpick_env.cli import UsageError
+    from policies.diffusion.train import main
+
+    common = ["--synthetic", "4", "--preset", "tiny", "--num-points", "256", "--inference-steps", "3",
+              "--batch-size", "2", "--val-every", "100", "--val-scenes", "1", "--threads", "1", "--no-progress"]
+    main(common + ["--out", str(tmp_path / "a"), "--steps", "50", "--max-minutes", "1e-6"])  # past at once
+    lines = [json.loads(line) for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    assert lines[-1] == {"stopped_at_step": 1, "of_steps": 50, "max_minutes": 1e-6}
+    assert lines[-2]["step"] == 1 and "val_ap_proxy" in lines[-2]  # validated where it stopped
+    assert load_checkpoint(tmp_path / "a" / "last.pt")["step"] == 1
+    main(common + ["--out", str(tmp_path / "b"), "--steps", "2", "--max-minutes", "60"])  # a budget not reached
+    assert load_checkpoint(tmp_path / "b" / "last.pt")["step"] == 2
+    assert "stopped_at_step" not in (tmp_path / "b" / "log.jsonl").read_text()
+    for bad in ("0", "-1", "nan"):
+        with pytest.raises(UsageError, match="--max-minutes"):
+            main(common + ["--out", str(tmp_path / "c"), "--steps", "2", "--max-minutes", bad])

@@ -105,3 +105,13 @@ def test_an_sb3_model_reads_the_provenance_from_the_log_beside_it(tmp_path: Path
     (tmp_path / "ppo.json").write_text(json.dumps({"seconds": 1.0, "provenance": prov}))
     record = checkpoint_provenance(tmp_path / "ppo.safetensors")
     assert record["source"] == "checkpoint" and record["seed"] == 4 and record["dataset_manifest_sha256"] == NO_DATASET
+
+
+def test_outside_a_checkout_the_commit_is_the_one_the_sender_names(tmp_path: Path, monkeypatch):
+    from policies.provenance import COMMIT_ENV, git_commit
+
+    monkeypatch.delenv(COMMIT_ENV, raising=False)
+    assert git_commit(tmp_path) == NOT_RECORDED  # a copy of the tree without .git
+    monkeypatch.setenv(COMMIT_ENV, "0acb31c")
+    assert git_commit(tmp_path) == "0acb31c"
+    assert git_commit() != "0acb31c"  # inside the checkout, git itself answers

@@ -38,7 +38,6 @@ if TYPE_CHECKING:
 
 Definition = Literal["paper", "suctionnet", "physical", "paper_compat"]
 DEFINITIONS: tuple[str, ...] = ("paper", "suctionnet", "physical", "paper_compat")
-LABEL_SETS: tuple[str, ...] = ("paper", "physical")  # what dataset.generate --labels offers
 AP_DEFINITIONS: tuple[str, ...] = ("suctionnet", "physical", "paper_compat")  # what eval/ap.py --quality offers
 
 # SuctionNet's evaluator constants (suctionnetAPI utils/eval_utils.py): r = 10 mm, k = 15.6, g = 9.8, unit mass,

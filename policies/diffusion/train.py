@@ -6,6 +6,9 @@ Resumable (``--resume`` continues from OUT/last.pt with the same data order and 
 ``--init CHECKPOINT`` warm-starts from a trained model's weights: a fresh optimizer and learning-rate schedule over
 ``--steps``, and the start model's validation is the bar that ``best.pt`` must beat. The start checkpoint's own
 record (step, provenance, SHA-256) is kept in every checkpoint the run writes, so the chain stays reproducible.
+``--max-minutes`` bounds this invocation's wall time: past it, the run validates, writes its checkpoints at the step
+it reached and stops (the log and the checkpoint record that step; the learning-rate schedule stays the one over
+``--steps``), so a run on a lent machine of limited time always leaves a model behind.
 """
 
 from __future__ import annotations
@@ -25,12 +28,13 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler, Subset, default_collate
 
 from parcelpick_env.cli import (
+    UsageError,
     check_input_dir,
     check_input_file,
     check_output_path,
     run_cli,
 )
-from parcelpick_env.suction.quality import LABEL_SETS
+from parcelpick_env.suction.label_sets import LABEL_SETS
 from policies.diffusion.checkpoint import load_checkpoint, load_model, save_checkpoint
 from policies.diffusion.config import TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
@@ -104,6 +108,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--workers", type=int, default=0, help="DataLoader workers (neighbourhoods are computed there)")
     p.add_argument("--val-every", type=int, default=200)
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="stop after this many minutes of this invocation, validated and saved at the step reached")
     start = p.add_mutually_exclusive_group()
     start.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     start.add_argument("--init", type=Path, metavar="CHECKPOINT",
@@ -244,6 +250,8 @@ def train(args: argparse.Namespace) -> dict[str, float]:
     improved = False  # whether this invocation wrote best.pt
     model.train()
     t0 = time.perf_counter()
+    deadline = None if args.max_minutes is None else started + 60.0 * args.max_minutes
+    out_of_time = False
     step = start
     if start == 0 and total > 0:  # the untrained (or warm-start) baseline, so the log shows what training bought
         base = {"step": 0, **validate(model, val_loader, device, args.seed, args.val_scenes)}
@@ -269,7 +277,8 @@ def train(args: argparse.Namespace) -> dict[str, float]:
             step += 1
             bar.update(1)
             bar.set_postfix({k: f"{float(v.detach()):.4f}" for k, v in losses.items()})
-            if step % args.val_every == 0 or step == total:
+            out_of_time = deadline is not None and time.perf_counter() > deadline and step < total
+            if step % args.val_every == 0 or step == total or out_of_time:
                 metrics = {"step": step, "loss": float(losses["loss"].detach()),
                            "sec_per_step": (time.perf_counter() - t0) / max(1, step - start),
                            **validate(model, val_loader, device, args.seed, args.val_scenes)}
@@ -287,6 +296,13 @@ def train(args: argparse.Namespace) -> dict[str, float]:
                 log.write(json.dumps(metrics) + "\n")
                 log.flush()
                 bar.write(json.dumps(metrics))
+            if out_of_time:
+                break
+        if out_of_time:
+            stopped = {"stopped_at_step": step, "of_steps": total, "max_minutes": args.max_minutes}
+            log.write(json.dumps(stopped) + "\n")
+            bar.write(f"--max-minutes {args.max_minutes} reached: stopped at step {step} of {total}")
+            break
     bar.close()
     log.close()
     if init is not None and start == 0 and not improved:
@@ -320,6 +336,8 @@ def main(argv: list[str] | None = None) -> None:
         check_input_file(args.out / "last.pt", "--resume")
     if args.init is not None:
         check_input_file(args.init, "--init")
+    if args.max_minutes is not None and not (math.isfinite(args.max_minutes) and args.max_minutes > 0):
+        raise UsageError(f"--max-minutes must be a positive number, got {args.max_minutes}")
     train(args)
 
 
