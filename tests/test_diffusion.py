@@ -280,6 +280,8 @@ def test_folded_batchnorm_encoder_matches(cfg):
     with torch.inference_mode():
         twice = fold_batchnorm(fold_batchnorm(model.encoder))(batch)
     assert torch.equal(twice, folded)  # idempotent: a policy built on a folded model folds nothing more
+    wide = fold_batchnorm(model.encoder.double())  # the fused layers keep their dtype (and device: a GPU model's)
+    assert {p.dtype for p in wide.parameters()} == {torch.float64}
 
 
 def test_gather_picks_the_indexed_rows_of_each_cloud_in_the_batch():

@@ -221,7 +221,7 @@ def _bn_affine(bn: nn.BatchNorm1d) -> tuple[torch.Tensor, torch.Tensor]:
 @torch.no_grad()
 def fold_batchnorm(module: nn.Module) -> nn.Module:
     """Inference copy with each eval-mode BatchNorm folded into the Linear before it (one memory pass less each).
-    Folding a folded module changes nothing."""
+    Folding a folded module changes nothing. The fused layers keep the device and dtype of the ones they replace."""
     module = copy.deepcopy(module).eval()
     for m in list(module.modules()):
         if isinstance(m, SetAbstractionMSG):
@@ -229,7 +229,8 @@ def fold_batchnorm(module: nn.Module) -> nn.Module:
                 if not isinstance(rest[0], _ChannelLastBatchNorm):  # folded already
                     continue
                 scale, shift = _bn_affine(rest[0])
-                fused = nn.Linear(first.in_features, first.out_features, bias=True)
+                fused = nn.Linear(first.in_features, first.out_features, bias=True, device=first.weight.device,
+                                  dtype=first.weight.dtype)
                 fused.weight.copy_(first.weight * scale[:, None])
                 fused.bias.copy_(shift)
                 m.first[s] = fused
@@ -239,7 +240,8 @@ def fold_batchnorm(module: nn.Module) -> nn.Module:
                 if isinstance(m[i], nn.Linear) and isinstance(m[i + 1], _ChannelLastBatchNorm):
                     scale, shift = _bn_affine(m[i + 1])
                     lin = m[i]
-                    fused = nn.Linear(lin.in_features, lin.out_features, bias=True)
+                    fused = nn.Linear(lin.in_features, lin.out_features, bias=True, device=lin.weight.device,
+                                      dtype=lin.weight.dtype)
                     fused.weight.copy_(lin.weight * scale[:, None])
                     fused.bias.copy_(shift if lin.bias is None else lin.bias * scale + shift)
                     m[i], m[i + 1] = fused, nn.Identity()
