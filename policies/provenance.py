@@ -36,15 +36,18 @@ COMMIT_ENV = "PARCELPICK_GIT_COMMIT"
 
 
 def git_commit(root: str | os.PathLike = REPO) -> str:
-    """HEAD's hash, with '+dirty' when tracked files differ from it. Outside a git checkout (a copy of the tree sent
-    to a lent machine), the commit that the sender names in ``PARCELPICK_GIT_COMMIT``, else NOT_RECORDED."""
+    """The commit that the sender names in ``PARCELPICK_GIT_COMMIT`` where it is set (a copy of the tree sent to a
+    lent machine: what git finds there can be an older HEAD, seen on 2026-12-04), else HEAD's hash with '+dirty'
+    when tracked files differ from it, else NOT_RECORDED (outside a git checkout)."""
+    if os.environ.get(COMMIT_ENV):
+        return os.environ[COMMIT_ENV]
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                               timeout=10, check=True).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
     except (OSError, subprocess.SubprocessError):
-        return os.environ.get(COMMIT_ENV) or NOT_RECORDED
+        return NOT_RECORDED
     return head + ("+dirty" if dirty else "")
 
 

@@ -107,11 +107,12 @@ def test_an_sb3_model_reads_the_provenance_from_the_log_beside_it(tmp_path: Path
     assert record["source"] == "checkpoint" and record["seed"] == 4 and record["dataset_manifest_sha256"] == NO_DATASET
 
 
-def test_outside_a_checkout_the_commit_is_the_one_the_sender_names(tmp_path: Path, monkeypatch):
+def test_the_commit_the_sender_names_wins_over_what_git_finds(tmp_path: Path, monkeypatch):
     from policies.provenance import COMMIT_ENV, git_commit
 
     monkeypatch.delenv(COMMIT_ENV, raising=False)
     assert git_commit(tmp_path) == NOT_RECORDED  # a copy of the tree without .git
-    monkeypatch.setenv(COMMIT_ENV, "0acb31c")
-    assert git_commit(tmp_path) == "0acb31c"
-    assert git_commit() != "0acb31c"  # inside the checkout, git itself answers
+    found = git_commit()
+    assert found != NOT_RECORDED and len(found.split("+")[0]) == 40
+    monkeypatch.setenv(COMMIT_ENV, "0acb31c")  # a copy sent elsewhere, whose .git may hold an older HEAD
+    assert git_commit(tmp_path) == git_commit() == "0acb31c"
