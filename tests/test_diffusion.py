@@ -598,6 +598,17 @@ def test_train_cli_sets_the_ddim_sampler():
     assert make_config(parse_args(["--synthetic", "4"])).timestep_spacing == DiffusionConfig().timestep_spacing
 
 
+def test_train_cli_turns_the_segment_levers_on_or_off_whatever_the_preset():
+    from policies.diffusion.train import make_config, parse_args
+
+    assert not make_config(parse_args(["--synthetic", "4", "--preset", "paper"])).segment_levers
+    assert make_config(parse_args(["--synthetic", "4", "--preset", "paper", "--segment-levers"])).segment_levers
+    assert make_config(parse_args(["--synthetic", "4"])).segment_levers  # the cpu preset's default
+    assert not make_config(parse_args(["--synthetic", "4", "--no-segment-levers"])).segment_levers
+    with pytest.raises(SystemExit):  # both at once say two different things
+        parse_args(["--synthetic", "4", "--segment-levers", "--no-segment-levers"])
+
+
 def test_train_cli_warm_starts_from_a_checkpoint_and_keeps_its_record(tmp_path, capsys):
     import hashlib
     import json

@@ -84,7 +84,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--width", type=float)
     p.add_argument("--no-normals", action="store_true")
     p.add_argument("--no-visibility", action="store_true")
-    p.add_argument("--no-segment-levers", action="store_true", help="do not condition on surface-segment lever arms")
+    levers = p.add_mutually_exclusive_group()  # the cpu preset conditions on them, the paper's does not
+    levers.add_argument("--no-segment-levers", action="store_true",
+                        help="do not condition on surface-segment lever arms")
+    levers.add_argument("--segment-levers", action="store_true",
+                        help="condition on surface-segment lever arms (e.g. the paper preset, whose GPU-trained model "
+                             "picked further from the centre of mass; README)")
     p.add_argument("--segment-size", action="store_true",
                    help="also condition the decoder on each point's surface-segment size (radius of gyration)")
     p.add_argument("--levers-in-encoder", action="store_true",
@@ -130,8 +135,8 @@ def make_config(args: argparse.Namespace) -> DiffusionConfig:
         overrides["use_normals"] = False
     if args.no_visibility:
         overrides["use_visibility"] = False
-    if args.no_segment_levers:
-        overrides["segment_levers"] = False
+    if args.no_segment_levers or args.segment_levers:
+        overrides["segment_levers"] = bool(args.segment_levers)
     if args.segment_size:
         overrides["segment_size"] = True
     if args.levers_in_encoder:
