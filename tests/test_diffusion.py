@@ -19,7 +19,7 @@ from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, l
 from policies.diffusion.config import LEGACY_SAMPLER, TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
 from policies.diffusion.model import build_model
-from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods, grid_sample
+from policies.diffusion.neighbourhood import NeighbourhoodTransform, compute_neighbourhoods, grid_sample, model_inputs
 from policies.diffusion import pointnet2
 from policies.diffusion.pointnet2 import FeaturePropagation, fold_batchnorm, gather
 from policies.diffusion import policy as diffusion_policy
@@ -264,6 +264,27 @@ def test_encoding_only_the_decoded_rows_gives_those_rows_features(cfg, overrides
         before = model.sample(whole, steps=2, generator=torch.Generator().manual_seed(0), point_index=rows)
         now = model.sample(part, steps=2, generator=torch.Generator().manual_seed(0))
     assert torch.allclose(before, now, atol=1e-5)
+
+
+def test_the_finest_interpolation_at_the_decoded_rows_only_changes_no_feature(cfg):
+    """``model_inputs(..., rows=...)`` computes ``fp1_*`` at those rows alone: the same rows of the whole cloud's, to
+    the bit, and the encoder given them returns the same features as given every point's."""
+    scene = synthetic_scene(np.random.default_rng(4), N)
+    rows = np.sort(np.random.default_rng(5).choice(N, 100, replace=False))
+    whole = model_inputs(scene["points"], scene["normals"], cfg)
+    part = model_inputs(scene["points"], scene["normals"], cfg, rows=rows)
+    assert part["fp1_index"].shape == (100, 3) and whole["fp1_index"].shape == (N, 3)
+    for key in whole:
+        expected = whole[key][rows] if key in ("fp1_index", "fp1_weight") else whole[key]
+        assert np.array_equal(part[key], expected), key
+    assert np.array_equal(model_inputs(scene["points"], scene["normals"], cfg, rows=np.arange(N))["fp1_index"],
+                          whole["fp1_index"])  # rows of every point: the whole cloud's arrays
+    model = build_model(cfg).eval()
+    as_tensors = lambda inputs: {k: torch.from_numpy(np.asarray(v)).unsqueeze(0)  # noqa: E731
+                                 for k, v in {**scene, **inputs}.items()}
+    index = torch.from_numpy(rows).unsqueeze(0)
+    with torch.inference_mode():
+        assert torch.equal(model.encode(as_tensors(part), index), model.encode(as_tensors(whole), index))
 
 
 def test_folded_batchnorm_encoder_matches(cfg):

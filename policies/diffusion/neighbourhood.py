@@ -96,11 +96,16 @@ def level_sizes(config: DiffusionConfig, n: int) -> list[int]:
     return sizes
 
 
-def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers: int = 1) -> dict[str, np.ndarray]:
-    """All SA/FP index arrays for one cloud (see module docstring); ``workers``: scipy k-NN threads."""
+def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers: int = 1,
+                           rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """All SA/FP index arrays for one cloud (see module docstring); ``workers``: scipy k-NN threads. ``rows``
+    (indices of fewer than N points): the finest interpolation (``fp1_index`` / ``fp1_weight``) at those points
+    only, the ones a decoded subset reads (``DiffusionSuction.encode(batch, rows)``); each row's is what the whole
+    cloud's would hold there, to the bit (every query point is its own query)."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
         raise ValueError(f"points must be a non-empty (N, 3) array, got shape {points.shape}")
+    finest = points if rows is None or len(rows) >= len(points) else points[np.asarray(rows, dtype=np.int64)]
     out: dict[str, np.ndarray] = {}
     level = points
     for l, (m, radii) in enumerate(zip(level_sizes(config, len(points)), config.sa_radii), start=1):
@@ -109,18 +114,20 @@ def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers:
         out[f"sa{l}_centres"] = centres
         out[f"sa{l}_groups"] = ball_group(tree, len(level), level[centres], radii, config.nsample,
                                           config.ball_dilation, workers)
-        out[f"fp{l}_index"], out[f"fp{l}_weight"] = interpolation(level, level[centres], workers)
+        out[f"fp{l}_index"], out[f"fp{l}_weight"] = interpolation(finest if l == 1 else level, level[centres],
+                                                                  workers)
         level = level[centres]
     return out
 
 
-def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfig, workers: int = 1
-                 ) -> dict[str, np.ndarray]:
+def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfig, workers: int = 1,
+                 rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Everything the model needs precomputed for one cloud: the neighbourhoods (PointNet++ encoder), and the
-    surface segments' lever arms (``surface_levers``) and sizes (``surface_size``) where the config uses them."""
+    surface segments' lever arms (``surface_levers``) and sizes (``surface_size``) where the config uses them.
+    ``rows``: see :func:`compute_neighbourhoods` (the segment channels stay at every point)."""
     out: dict[str, np.ndarray] = {}
     if config.encoder == "pointnet2":
-        out.update(compute_neighbourhoods(points, config, workers))
+        out.update(compute_neighbourhoods(points, config, workers, rows))
     if config.uses_segments:
         labels = segment_surfaces(points, normals, config.segment_radius, config.segment_min_cos)
         offsets = offsets_to_centroids(points, labels)  # once, for the levers and the sizes alike

@@ -165,7 +165,9 @@ class PointNet2Encoder(nn.Module):
 
     def forward(self, batch: Mapping[str, torch.Tensor], rows: torch.Tensor | None = None) -> torch.Tensor:
         """(B, N, feature_dim), or (B, M, feature_dim) at ``rows`` (B, M): the finest feature propagation is
-        per point, so it then runs only where the decoder reads (8x fewer rows at 2,048 of 16,384 points)."""
+        per point, so it then runs only where the decoder reads (8x fewer rows at 2,048 of 16,384 points). The
+        batch's ``fp1_index`` / ``fp1_weight`` may hold every point's (N rows) or the rows' alone (M < N rows,
+        ``model_inputs(..., rows=...)``)."""
         xyz = batch["points"]
         feats = point_features(batch, self.config)
         xyzs, featss = [xyz], [feats]
@@ -178,7 +180,8 @@ class PointNet2Encoder(nn.Module):
             skip, index, weight = featss[l - 1], batch[f"fp{l}_index"], batch[f"fp{l}_weight"]
             if l == 1 and rows is not None:
                 skip = None if skip is None else gather(skip, rows)
-                index, weight = gather(index, rows), gather(weight, rows)
+                if index.shape[1] == xyzs[0].shape[1]:  # given at every point: take the rows'
+                    index, weight = gather(index, rows), gather(weight, rows)
             coarse = fp(skip, coarse, index, weight)
         return coarse  # (B, N or M, feature_dim)
 

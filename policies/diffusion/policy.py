@@ -98,12 +98,12 @@ class DiffusionSuctionPolicy(Policy):
         if len(points) > cfg.num_points:
             keep = sample_indices(points, cfg.num_points, cfg.sampler)
             points, normals = points[keep], normals[keep]
-        batch = {"points": points, "normals": normals,
-                 **model_inputs(points, normals, cfg, workers=torch.get_num_threads())}
-        tensors = {k: torch.from_numpy(np.ascontiguousarray(v)).unsqueeze(0).to(self.device) for k, v in batch.items()}
         subset = None
         if 0 < self.decode_points < len(points):
             subset = np.sort(grid_sample(points, self.decode_points))
+        batch = {"points": points, "normals": normals,  # the finest interpolation only where the decoder reads
+                 **model_inputs(points, normals, cfg, workers=torch.get_num_threads(), rows=subset)}
+        tensors = {k: torch.from_numpy(np.ascontiguousarray(v)).unsqueeze(0).to(self.device) for k, v in batch.items()}
         low = self.precision != "float32"
         rows = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
         with torch.inference_mode():
