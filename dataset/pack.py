@@ -30,6 +30,7 @@ from parcelpick_env.cli import UsageError, check_input_dir, check_output_path, r
 from parcelpick_env.suction.label_sets import LABEL_SETS
 
 HALF_KEYS = ("points", "normals", "labels")  # stored as float16; object_ids as the narrowest int that holds them
+UNIT_KEYS = ("normals", "labels")  # values in [-1, 1]: what ``unit_step`` rounds
 COMPRESSION_LEVEL = 9  # the copy is written once and read many times: the slowest gzip costs nothing later
 
 
@@ -37,14 +38,17 @@ def _narrow_ids(ids: np.ndarray) -> np.ndarray:
     return ids.astype(np.int16) if ids.size == 0 or (ids.min() >= -2**15 and ids.max() < 2**15) else ids
 
 
-def pack_scene(arrays: dict[str, np.ndarray], stored_labels: str) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """(record, largest absolute rounding error per half-precision array) of one scene's model arrays."""
+def pack_scene(arrays: dict[str, np.ndarray], stored_labels: str, unit_step: float = 0.0
+               ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """(record, largest absolute rounding error per half-precision array) of one scene's model arrays; ``unit_step``
+    > 0 first rounds the normals and labels to its multiples (gzip then stores them in fewer bytes)."""
     source = {"points": arrays["points"], "normals": arrays["normals"], "labels": arrays[stored_labels]}
     record: dict[str, np.ndarray] = {}
     errors: dict[str, float] = {}
     for key, value in source.items():
         value = np.asarray(value, dtype=np.float64)
-        half = value.astype(np.float16)
+        rounded = np.round(value / unit_step) * unit_step if unit_step > 0 and key in UNIT_KEYS else value
+        half = rounded.astype(np.float16)
         if not np.isfinite(half).all():
             raise ValueError(f"{key} exceeds float16's range (|x| <= 65504)")
         record[key] = half
@@ -54,9 +58,12 @@ def pack_scene(arrays: dict[str, np.ndarray], stored_labels: str) -> tuple[dict[
 
 
 def pack(source: Path, out: Path, label_set: str | None = None, scenes: int | None = None,
-         progress: bool = True) -> dict[str, Any]:
+         progress: bool = True, unit_step: float = 0.0) -> dict[str, Any]:
     """Write the compact copy of ``source`` (its first ``scenes`` scenes, default all) to ``out``; return the
-    manifest. Shard ``k`` of the copy holds the scenes of the source's shard ``k``."""
+    manifest. Shard ``k`` of the copy holds the scenes of the source's shard ``k``. ``unit_step``: see
+    :func:`pack_scene` (0, the default, rounds only to float16)."""
+    if not (np.isfinite(unit_step) and 0.0 <= unit_step <= 0.1):
+        raise UsageError(f"--unit-step must be in [0, 0.1], got {unit_step}")
     store = open_dataset(source)  # every array read is checked against its digest
     config = dict(store.config)
     kept, stored = label_key(config, label_set, source)
@@ -73,7 +80,7 @@ def pack(source: Path, out: Path, label_set: str | None = None, scenes: int | No
                 break
             records = {}
             for index in range(start, stop):
-                records[index], errors = pack_scene(store.scene(index, keys), stored)
+                records[index], errors = pack_scene(store.scene(index, keys), stored, unit_step)
                 worst = {key: max(worst[key], errors[key]) for key in HALF_KEYS}
                 bar.update(1)
             entries.append(write_shard(out / shard_name(shard["shard"]), shard["shard"], records, range(start, stop),
@@ -81,7 +88,7 @@ def pack(source: Path, out: Path, label_set: str | None = None, scenes: int | No
     store.close()
     config.update(labels=kept, extra_labels=[], store_images=False, scenes=total, pack={
         "source": str(source), "source_manifest_sha256": hashlib.sha256((source / MANIFEST).read_bytes()).hexdigest(),
-        "dtype": "float16", "max_abs_error": worst})
+        "dtype": "float16", "unit_step": unit_step, "max_abs_error": worst})
     return write_manifest(out, config, entries, complete=True)
 
 
@@ -92,6 +99,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--label-set", choices=list(LABEL_SETS), default=None,
                    help="the label set to keep (default: the source's main one)")
     p.add_argument("--scenes", type=int, default=None, help="keep the first N scenes (default: all)")
+    p.add_argument("--unit-step", type=float, default=0.0,
+                   help="round normals and labels to multiples of this first (0.00390625 = 1/256 stores a 16,384-point "
+                        "scene in ~133 KB instead of ~175 KB, to within 0.002)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     check_input_dir(args.source, "source")
@@ -99,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.out.resolve() == args.source.resolve():
         raise UsageError("out must differ from source")
     try:
-        manifest = pack(args.source, args.out, args.label_set, args.scenes, progress=not args.no_progress)
+        manifest = pack(args.source, args.out, args.label_set, args.scenes, progress=not args.no_progress,
+                        unit_step=args.unit_step)
     except ValueError as e:  # a label set the source does not hold, or a value past float16
         raise UsageError(str(e)) from e
     size = sum(entry["bytes"] for entry in manifest["shards"])

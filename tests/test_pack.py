@@ -77,6 +77,25 @@ def test_a_label_set_and_a_scene_count_are_kept_as_asked(source, tmp_path):
     assert [(s["scene_start"], s["scene_stop"]) for s in first["shards"]] == [(0, 2), (2, 3)]
 
 
+def test_a_unit_step_rounds_the_normals_and_labels_only_and_saves_bytes(source, tmp_path):
+    plain = pack(source, tmp_path / "plain", progress=False)
+    step = 2.0**-8
+    rounded = pack(source, tmp_path / "rounded", progress=False, unit_step=step)
+    a, b = open_dataset(tmp_path / "plain"), open_dataset(tmp_path / "rounded")
+    for i in range(5):
+        assert np.array_equal(a.scene(i)["points"], b.scene(i)["points"])  # points are not rounded further
+        for key in ("normals", "labels"):
+            values = b.scene(i)[key].astype(np.float64)
+            assert np.allclose(values / step, np.round(values / step), atol=1e-6), key  # multiples of the step
+    errors = rounded["config"]["pack"]["max_abs_error"]
+    assert plain["config"]["pack"]["unit_step"] == 0.0 and rounded["config"]["pack"]["unit_step"] == step
+    assert errors["normals"] <= step / 2 + 2.0**-11 and errors["normals"] > plain["config"]["pack"]["max_abs_error"][
+        "normals"]
+    assert sum(e["bytes"] for e in rounded["shards"]) < sum(e["bytes"] for e in plain["shards"])
+    with pytest.raises(UsageError, match="--unit-step"):
+        pack(source, tmp_path / "bad", progress=False, unit_step=float("nan"))
+
+
 def test_bad_arguments_and_a_corrupt_source_fail_in_one_line(source, tmp_path, capsys):
     with pytest.raises(UsageError, match="--scenes must be in \\[1, 5\\]"):
         pack_main([str(source), str(tmp_path / "a"), "--scenes", "9", "--no-progress"])
