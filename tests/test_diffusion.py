@@ -460,6 +460,31 @@ def test_same_seed_same_prediction(cfg):
     assert not torch.equal(sa, sc)
 
 
+def test_several_noise_draws_average_their_score_maps(cfg):
+    """``draws=K`` denoises K noise draws as one batch and returns their mean map: the mean of K runs one after
+    another on the same noise stream, and for K = 1 the plain sample to the bit."""
+    batch = make_batch(cfg, seeds=(1, 2))
+    model = build_model(cfg, seed=5).eval()
+    with torch.inference_mode():
+        features = model.encode(batch)
+        single = model.sample(features, generator=torch.Generator().manual_seed(3))
+        assert torch.equal(model.sample(features, generator=torch.Generator().manual_seed(3), draws=1), single)
+        g = torch.Generator().manual_seed(3)
+        one_by_one = torch.stack([model.sample(features, generator=g) for _ in range(3)])
+        mean, trajectory = model.sample(features, generator=torch.Generator().manual_seed(3), draws=3,
+                                        return_trajectory=True)
+    assert torch.allclose(mean, one_by_one.mean(0), atol=1e-5), float((mean - one_by_one.mean(0)).abs().max())
+    assert not torch.allclose(mean, single, atol=1e-3)  # the mean of three is not the first draw
+    assert mean.shape == single.shape and trajectory.shape == (cfg.inference_steps + 1, *single.shape)
+    for bad in (0, 1.5, -2):
+        with pytest.raises(ValueError, match="draws"):
+            model.sample(features, draws=bad)
+    with pytest.raises(ValueError, match="draws"):
+        DiffusionSuctionPolicy(model=model, draws=0)
+    candidates = DiffusionSuctionPolicy(model=model, draws=2, record_trajectory=False).predict(obs_from(5), top_k=3)
+    assert len(candidates) > 0
+
+
 @pytest.mark.parametrize("objective", [{}, {"prediction": "x0", "map_loss_weight": 0.0},
                                        {"prediction": "x0", "map_loss_weight": 0.0, "segment_levers": True}],
                          ids=["eps+map", "x0", "x0+levers"])

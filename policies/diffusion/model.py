@@ -61,21 +61,29 @@ class DiffusionSuction(nn.Module):
         return x0
 
     def sample(self, features: torch.Tensor, steps: int | None = None, generator: torch.Generator | None = None,
-               return_trajectory: bool = False, point_index: torch.Tensor | None = None
+               return_trajectory: bool = False, point_index: torch.Tensor | None = None, draws: int = 1
                ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """DDIM-sample scores (B, N, C) in [0, 1] from cached encoder features (B, N, F).
 
         ``point_index`` (B, M) denoises only those points (a uniform subset is enough to rank candidates).
-        With ``return_trajectory`` also returns the maps after each step, (steps + 1, B, N, C), noise first.
+        ``draws`` > 1 averages the score maps of that many noise draws, denoised as one batch (the encoder's
+        features are shared): each draw is one sample of the learnt distribution, their mean an estimate of
+        its expected score. With ``return_trajectory`` also returns the maps after each step, (steps + 1, B, N,
+        C), noise first (of the first draw).
         """
+        if int(draws) != draws or draws < 1:
+            raise ValueError(f"draws must be an integer >= 1, got {draws!r}")
         if point_index is not None:
             features = gather(features, point_index)
-        cond = self.decoder.embed_condition(features)
+        batch = features.shape[0]
+        cond = self.decoder.embed_condition(features.repeat(draws, 1, 1) if draws > 1 else features)
         trajectory: list[torch.Tensor] | None = [] if return_trajectory else None
         x = self._denoise_loop(cond, steps or self.config.inference_steps, generator, trajectory)
         scores = self.to_scores(x).transpose(1, 2)
+        if draws > 1:
+            scores = scores.reshape(draws, batch, *scores.shape[1:]).mean(0)
         if return_trajectory:
-            return scores, torch.stack(trajectory)
+            return scores, torch.stack(trajectory)[:, :batch]
         return scores
 
     def forward_train(self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None

@@ -51,12 +51,16 @@ class DiffusionSuctionPolicy(Policy):
     def __init__(self, checkpoint: str | os.PathLike | None = None, device: str = "cpu", seed: int = 0,
                  num_threads: int | None = None, inference_steps: int | None = None, decode_points: int | None = None,
                  nms_radius: float = NMS_RADIUS, record_trajectory: bool = True, model: DiffusionSuction | None = None,
-                 precision: str = "float32"):
+                 precision: str = "float32", draws: int = 1):
         """Loads ``checkpoint`` (default: the shipped one); ``model`` instead uses an in-memory model (tests).
 
         ``decode_points`` > 0 denoises a uniform subset of that many points (faster; candidates need no more).
         ``precision`` ('float32' | 'bfloat16') is the encoder's arithmetic at inference (see ``PRECISIONS``).
+        ``draws`` > 1 ranks by the mean score map of that many noise draws (``DiffusionSuction.sample``).
         """
+        if int(draws) != draws or draws < 1:
+            raise ValueError(f"draws must be an integer >= 1, got {draws!r}")
+        self.draws = int(draws)
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.precision = precision
@@ -110,7 +114,7 @@ class DiffusionSuctionPolicy(Policy):
             with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=low):
                 features = self.model.encode(tensors, rows).float()  # at the decoded points only
             out = self.model.sample(features, self.inference_steps, self._generator,
-                                    return_trajectory=self.record_trajectory)
+                                    return_trajectory=self.record_trajectory, draws=self.draws)
         scores, trajectory = out if self.record_trajectory else (out, None)
         if subset is not None:
             points, normals = points[subset], normals[subset]
