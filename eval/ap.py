@@ -52,7 +52,16 @@ from dataset.suctionnet.models import world_meshes as suctionnet_world_meshes  #
 from dataset.suctionnet.reader import ASSET_PREFIX as SUCTIONNET_ASSET_PREFIX  # noqa: E402
 from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
 from parcelpick_env.assets.parcel import ParcelAsset  # noqa: E402
-from parcelpick_env.cli import check_input_dir, check_output_path, check_policy, run_cli, usage_exit  # noqa: E402
+from parcelpick_env.cli import (  # noqa: E402
+    POLICY_ARG,
+    UsageError,
+    check_input_dir,
+    check_output_path,
+    check_policy,
+    parse_policy_args,
+    run_cli,
+    usage_exit,
+)
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene  # noqa: E402
 from parcelpick_env.suction.geometry import surface_centroid  # noqa: E402
 from parcelpick_env.suction.quality import AP_DEFINITIONS, check_definition, definition_scorer, score_definition  # noqa: E402
@@ -425,6 +434,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", type=int, default=None, help="evaluate only the first N scenes")
     p.add_argument("--out", type=Path, default=None, help="write the results JSON here")
     p.add_argument("--checkpoint", default=None, help="weights for learned policies")
+    p.add_argument(POLICY_ARG, action="append", default=[], metavar="KEY=VALUE",
+                   help="a keyword for the policy's constructor, repeatable (e.g. draws=4 for Diffusion-Suction)")
     p.add_argument("--candidates", type=int, default=d.candidates, help="top_k asked of the policy")
     p.add_argument("--num-points", type=int, default=None, help="cloud size shown to the policy")
     p.add_argument("--seed", type=int, default=d.seed)
@@ -450,7 +461,10 @@ def main(argv: list[str] | None = None) -> int:
         config = APConfig(quality=args.quality, nms_radius=args.nms_radius, max_distance=args.max_distance,
                           candidates=args.candidates,
                           num_points=args.num_points, seed=args.seed)
-        policy = None if args.policy is None else check_policy(args.policy, args.checkpoint)
+        policy_kwargs = parse_policy_args(args.policy_arg)
+        if policy_kwargs and args.policy is None:
+            raise UsageError(f"{POLICY_ARG} needs --policy")
+        policy = None if args.policy is None else check_policy(args.policy, args.checkpoint, **policy_kwargs)
     except ValueError as exc:  # UsageError from the checks, or a bad APConfig field
         usage_exit(parser.prog, exc)
     try:
@@ -459,6 +473,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    if policy_kwargs:
+        result["policy_kwargs"] = policy_kwargs  # what the policy was made with, beside its name
     print(format_table(result))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -57,6 +57,7 @@ class ClearanceConfig:
     ray_address: str | None = None
     record_dir: str | None = None
     checkpoint: str | None = None
+    policy_kwargs: dict[str, Any] = field(default_factory=dict)  # more keywords for the policy (--policy-arg)
     max_attempts: int | None = None
     # the cell's deployment check: every policy that ranks candidates from the camera acts on its best one whose
     # physical tool is clear of the observed scene (policies/tool_check.py); the oracle checks the true scene itself
@@ -179,7 +180,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         env_kwargs["max_attempts"] = cfg.max_attempts
     if cfg.record_dir is not None:
         env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
-    policy_kwargs = {"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}
+    policy_kwargs = dict(cfg.policy_kwargs, **({"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}))
     policy = make_policy(cfg.policy, **policy_kwargs)
     if cfg.tool_check and tool_check_refusal(policy) is None:
         policy = ToolCheckedPolicy(policy, ToolCheckConfig(seal=cfg.seal_check))
@@ -361,10 +362,14 @@ def tool_check_flags(config: ClearanceConfig) -> dict[str, bool]:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from parcelpick_env.cli import POLICY_ARG
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--policy", default="diffusion", help="registered policy name")
     p.add_argument("--checkpoint", default=None, help="checkpoint for learned policies (default: shipped)")
+    p.add_argument(POLICY_ARG, action="append", default=[], metavar="KEY=VALUE",
+                   help="a keyword for the policy's constructor, repeatable (e.g. draws=4 for Diffusion-Suction)")
     p.add_argument("--objects", nargs="+", default=list(OBJECT_SETS), choices=OBJECT_SETS)
     p.add_argument("--layout", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
     p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="episodes per (object set, layout) cell")
@@ -390,14 +395,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from parcelpick_env.cli import UsageError, check_output_path, check_policy
+    from parcelpick_env.cli import UsageError, check_output_path, check_policy, parse_policy_args
 
     try:  # before any pile is built: paths, the policy name and its checkpoint (the policy is made once here)
         if args.record is not None:
             check_output_path(args.record, "--record", directory=True)
         if args.out is not None:
             check_output_path(args.out, "--out")
-        check_policy(args.policy, args.checkpoint)
+        policy_kwargs = parse_policy_args(args.policy_arg)
+        check_policy(args.policy, args.checkpoint, **policy_kwargs)
     except UsageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -405,7 +411,7 @@ def main(argv: list[str] | None = None) -> int:
         config = ClearanceConfig(policy=args.policy, objects=tuple(args.objects), layouts=tuple(args.layout),
                                  episodes=args.episodes, num_parcels=args.parcels, seed=args.seed,
                                  workers=args.workers, backend=args.backend, ray_address=args.ray_address,
-                                 record_dir=args.record, checkpoint=args.checkpoint,
+                                 record_dir=args.record, checkpoint=args.checkpoint, policy_kwargs=policy_kwargs,
                                  max_attempts=args.max_attempts, tool_check=args.tool_check,
                                  seal_check=args.seal_check, audit_picks=args.audit_picks)
     except ValueError as exc:

@@ -153,6 +153,33 @@ def check_policy_name(name: str, arg: str = "--policy") -> str:
     return name
 
 
+POLICY_ARG = "--policy-arg"
+
+
+def parse_policy_args(items: Sequence[str], arg: str = POLICY_ARG) -> dict[str, Any]:
+    """``KEY=VALUE`` strings as keyword arguments for a policy's constructor (``draws=4``, ``decode_points=2048``,
+    ``precision=bfloat16``): a value JSON reads (a number, true / false, null, a quoted string) is that value, any
+    other is the string as given. ``UsageError`` naming ``arg`` for a malformed item, a repeated key or
+    ``checkpoint`` (which has its own flag)."""
+    import json
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep or not key.isidentifier():
+            raise UsageError(f"{arg} {item!r}: expected KEY=VALUE with KEY a keyword of the policy, e.g. draws=4")
+        if key == "checkpoint":
+            raise UsageError(f"{arg} {item!r}: give the checkpoint with --checkpoint")
+        if key in out:
+            raise UsageError(f"{arg} {item!r}: {key} given twice")
+        try:
+            out[key] = json.loads(raw)
+        except ValueError:
+            out[key] = raw
+    return out
+
+
 def check_policy(name: str, checkpoint: str | os.PathLike | None = None, *, arg: str = "--policy",
                  checkpoint_arg: str = "--checkpoint", **kwargs: Any) -> Any:
     """Make the registered policy ``name`` (with ``checkpoint`` if given), so an unknown name, a missing or
@@ -167,4 +194,7 @@ def check_policy(name: str, checkpoint: str | os.PathLike | None = None, *, arg:
         return make_policy(name, **kwargs)
     except (ValueError, OSError, TypeError, KeyError, RuntimeError, ImportError, NotImplementedError) as exc:
         where = f"{checkpoint_arg} {checkpoint}" if checkpoint is not None else f"{arg} {name}"
+        given = {k: v for k, v in kwargs.items() if k != "checkpoint"}
+        if given:
+            where += f" ({POLICY_ARG} {', '.join(f'{k}={v!r}' for k, v in given.items())})"
         raise UsageError(f"{where}: cannot make policy {name!r}: {one_line(exc)}") from exc

@@ -224,3 +224,25 @@ def test_generated_dataset_end_to_end(tmp_path):
         results[policy.name] = result
     assert results["oracle"]["top1_AP"] == pytest.approx(100 * np.mean(q_best >= np.array([0.2, 0.4, 0.6, 0.8])))
     assert results["oracle"]["AP"] >= results["random"]["AP"]
+
+
+def test_policy_args_reach_the_policy_and_the_json(dataset_dir, tmp_path, capsys):
+    from parcelpick_env.cli import UsageError, parse_policy_args
+
+    assert parse_policy_args(["draws=4", "precision=bfloat16", "seed=null", "nms_radius=0.03", "flag=true",
+                              'name="x=y"']) == {"draws": 4, "precision": "bfloat16", "seed": None,
+                                                 "nms_radius": 0.03, "flag": True, "name": "x=y"}
+    for bad, why in (("draws", "KEY=VALUE"), ("=4", "KEY=VALUE"), ("checkpoint=a.pt", "--checkpoint"),
+                     ("2x=1", "KEY=VALUE")):
+        with pytest.raises(UsageError, match=why):
+            parse_policy_args([bad])
+    with pytest.raises(UsageError, match="twice"):
+        parse_policy_args(["seed=1", "seed=2"])
+    out = tmp_path / "r.json"
+    assert main(["--policy", "random", "--data", str(dataset_dir), "--policy-arg", "seed=3", "--out", str(out),
+                 "--quiet"]) == 0
+    assert json.loads(out.read_text())["policy_kwargs"] == {"seed": 3}
+    with pytest.raises(SystemExit) as bad_kwarg:  # one line naming the flag and the policy's complaint
+        main(["--policy", "random", "--data", str(dataset_dir), "--policy-arg", "bogus=1"])
+    err = capsys.readouterr().err
+    assert bad_kwarg.value.code == 2 and "--policy-arg bogus=1" in err and "unexpected keyword" in err

@@ -175,3 +175,13 @@ def test_summaries_count_failures_per_cell_and_overall():
     iv = s["overall"]["intervals"]["R_grasp"]
     assert iv["low"] == iv["high"] == pytest.approx(50.0) and iv["n"] == 2
     assert "Failures: " in format_table(s) and "collision: free-space (tool_rod) 1" in format_table(s)
+
+
+def test_policy_kwargs_reach_every_episode_and_the_summary(capsys):
+    summary = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), policy_kwargs={"seed": 5}),
+                                 progress=False)
+    assert summary["config"]["policy_kwargs"] == {"seed": 5}
+    with pytest.raises(TypeError, match="bogus"):  # made in the episode itself, with the keywords given
+        evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), policy_kwargs={"bogus": 1}), progress=False)
+    assert main(["--policy", "random", "--policy-arg", "bogus=1"]) == 2
+    assert "--policy-arg bogus=1" in capsys.readouterr().err
