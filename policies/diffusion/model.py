@@ -14,6 +14,13 @@ from policies.diffusion.scheduler import DiffusionSchedule
 from policies.diffusion.segment_inputs import segment_channels, segment_features
 
 
+def check_draws(draws: int) -> int:
+    """``draws`` as an int, or ValueError: the number of noise draws ``DiffusionSuction.sample`` averages."""
+    if int(draws) != draws or draws < 1:
+        raise ValueError(f"draws must be an integer >= 1, got {draws!r}")
+    return int(draws)
+
+
 class DiffusionSuction(nn.Module):
     def __init__(self, config: DiffusionConfig):
         super().__init__()
@@ -71,8 +78,7 @@ class DiffusionSuction(nn.Module):
         its expected score. With ``return_trajectory`` also returns the maps after each step, (steps + 1, B, N,
         C), noise first (of the first draw).
         """
-        if int(draws) != draws or draws < 1:
-            raise ValueError(f"draws must be an integer >= 1, got {draws!r}")
+        draws = check_draws(draws)
         if point_index is not None:
             features = gather(features, point_index)
         batch = features.shape[0]

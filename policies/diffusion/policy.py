@@ -13,7 +13,7 @@ import torch
 
 from policies.base import Candidates, Policy
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
-from policies.diffusion.model import DiffusionSuction
+from policies.diffusion.model import DiffusionSuction, check_draws
 from policies.diffusion.pointnet2 import fold_batchnorm
 from policies.diffusion.neighbourhood import grid_sample, model_inputs, sample_indices
 from policies.observation import point_cloud
@@ -58,9 +58,7 @@ class DiffusionSuctionPolicy(Policy):
         ``precision`` ('float32' | 'bfloat16') is the encoder's arithmetic at inference (see ``PRECISIONS``).
         ``draws`` > 1 ranks by the mean score map of that many noise draws (``DiffusionSuction.sample``).
         """
-        if int(draws) != draws or draws < 1:
-            raise ValueError(f"draws must be an integer >= 1, got {draws!r}")
-        self.draws = int(draws)
+        self.draws = check_draws(draws)  # refused here, before a checkpoint is read
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         self.precision = precision
