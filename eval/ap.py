@@ -55,6 +55,7 @@ from parcelpick_env.assets.parcel import ParcelAsset  # noqa: E402
 from parcelpick_env.cli import (  # noqa: E402
     POLICY_ARG,
     UsageError,
+    add_policy_arg,
     check_input_dir,
     check_output_path,
     check_policy,
@@ -434,8 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", type=int, default=None, help="evaluate only the first N scenes")
     p.add_argument("--out", type=Path, default=None, help="write the results JSON here")
     p.add_argument("--checkpoint", default=None, help="weights for learned policies")
-    p.add_argument(POLICY_ARG, action="append", default=[], metavar="KEY=VALUE",
-                   help="a keyword for the policy's constructor, repeatable (e.g. draws=4 for Diffusion-Suction)")
+    add_policy_arg(p)
     p.add_argument("--candidates", type=int, default=d.candidates, help="top_k asked of the policy")
     p.add_argument("--num-points", type=int, default=None, help="cloud size shown to the policy")
     p.add_argument("--seed", type=int, default=d.seed)

@@ -362,14 +362,13 @@ def tool_check_flags(config: ClearanceConfig) -> dict[str, bool]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from parcelpick_env.cli import POLICY_ARG
+    from parcelpick_env.cli import add_policy_arg
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--policy", default="diffusion", help="registered policy name")
     p.add_argument("--checkpoint", default=None, help="checkpoint for learned policies (default: shipped)")
-    p.add_argument(POLICY_ARG, action="append", default=[], metavar="KEY=VALUE",
-                   help="a keyword for the policy's constructor, repeatable (e.g. draws=4 for Diffusion-Suction)")
+    add_policy_arg(p)
     p.add_argument("--objects", nargs="+", default=list(OBJECT_SETS), choices=OBJECT_SETS)
     p.add_argument("--layout", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
     p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="episodes per (object set, layout) cell")

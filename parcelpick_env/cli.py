@@ -156,6 +156,12 @@ def check_policy_name(name: str, arg: str = "--policy") -> str:
 POLICY_ARG = "--policy-arg"
 
 
+def add_policy_arg(parser: argparse.ArgumentParser) -> None:
+    """The evaluation commands' ``--policy-arg KEY=VALUE`` (repeatable), read with :func:`parse_policy_args`."""
+    parser.add_argument(POLICY_ARG, action="append", default=[], metavar="KEY=VALUE",
+                        help="a keyword for the policy's constructor, repeatable (e.g. draws=4 for Diffusion-Suction)")
+
+
 def parse_policy_args(items: Sequence[str], arg: str = POLICY_ARG) -> dict[str, Any]:
     """``KEY=VALUE`` strings as keyword arguments for a policy's constructor (``draws=4``, ``decode_points=2048``,
     ``precision=bfloat16``): a value JSON reads (a number, true / false, null, a quoted string) is that value, any
