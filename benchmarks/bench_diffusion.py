@@ -58,26 +58,51 @@ def scheduler_only(model, x: torch.Tensor) -> None:
         x, _ = model.scheduler.step(x, t, x, steps)
 
 
+def timed_inputs(cfg: DiffusionConfig, scene: dict, repeats: int, device: torch.device = torch.device("cpu")
+                 ) -> tuple[float, dict[str, torch.Tensor]]:
+    """The precompute's time (ms, on the CPU as in the policy) and the batch it gives, on ``device``."""
+    nb: dict = {}
+    t_nb = timed(lambda: nb.update(model_inputs(scene["points"], scene["normals"], cfg)), repeats)
+    return t_nb, {k: torch.from_numpy(np.asarray(v)).unsqueeze(0).to(device) for k, v in {**scene, **nb}.items()}
+
+
+def network_times(model, batch: dict[str, torch.Tensor], repeats: int, decode_points: int, precision: str,
+                  device: torch.device = torch.device("cpu")) -> tuple[float, float, float, torch.Tensor]:
+    """(encoder, decoder at every point, decoder at ``decode_points`` evenly spaced rows) in ms, and the features, as
+    the policy runs them: the encoder at ``precision``, the decoder in float32; on a GPU each call synchronised."""
+    n = batch["points"].shape[1]
+    sub = torch.arange(0, n, max(1, n // decode_points))[:decode_points].unsqueeze(0).to(device)
+
+    def synced(fn):
+        def run():
+            fn()
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+        return run
+
+    def encode() -> torch.Tensor:
+        with torch.autocast(device.type, dtype=PRECISIONS[precision], enabled=precision != "float32"):
+            return model.encode(batch).float()
+
+    def generator() -> torch.Generator:
+        return torch.Generator(device=device).manual_seed(0)
+
+    with torch.inference_mode():
+        feats = encode()
+        t_enc = timed(synced(encode), repeats)
+        t_dec = timed(synced(lambda: model.sample(feats, generator=generator())), repeats)
+        t_sub = timed(synced(lambda: model.sample(feats, generator=generator(), point_index=sub)), repeats)
+    return t_enc, t_dec, t_sub, feats
+
+
 def bench_inference(name: str, cfg: DiffusionConfig, n: int, repeats: int, decode_points: int,
                     precision: str = "float32") -> dict:
     scene = synthetic_scene(np.random.default_rng(0), n)
     model = build_model(cfg).eval()
     model.encoder = fold_batchnorm(model.encoder)  # as the policy runs it
-    nb = {}
-    t_nb = timed(lambda: nb.update(model_inputs(scene["points"], scene["normals"], cfg)), repeats)
-    batch = {k: torch.from_numpy(np.asarray(v)).unsqueeze(0) for k, v in {**scene, **nb}.items()}
-    low = precision != "float32"
-
-    def encode() -> torch.Tensor:  # as the policy runs it: the encoder at ``precision``, the decoder in float32
-        with torch.autocast("cpu", dtype=PRECISIONS[precision], enabled=low):
-            return model.encode(batch).float()
-
+    t_nb, batch = timed_inputs(cfg, scene, repeats)
+    t_enc, t_dec, t_sub, _ = network_times(model, batch, repeats, decode_points, precision)
     with torch.inference_mode():
-        feats = encode()
-        t_enc = timed(encode, repeats)
-        t_dec = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0)), repeats)
-        sub = torch.arange(0, n, max(1, n // decode_points))[:decode_points].unsqueeze(0)
-        t_sub = timed(lambda: model.sample(feats, generator=torch.Generator().manual_seed(0), point_index=sub), repeats)
         x = torch.randn((1, cfg.num_channels, n), generator=torch.Generator().manual_seed(0))
         t_sched = timed(lambda: scheduler_only(model, x), repeats)
     obs = {"points": scene["points"], "normals": scene["normals"]}
@@ -104,31 +129,10 @@ def bench_cuda(cfg: DiffusionConfig, repeats: int, decode_points: int, checkpoin
         model = build_model(cfg).to(device).eval()
     model.encoder = fold_batchnorm(model.encoder)
     n = cfg.num_points
-    scene = synthetic_scene(np.random.default_rng(0), n)
-    nb: dict = {}
-    t_nb = timed(lambda: nb.update(model_inputs(scene["points"], scene["normals"], cfg)), repeats)
-    batch = {k: torch.from_numpy(np.asarray(v)).unsqueeze(0).to(device) for k, v in {**scene, **nb}.items()}
-    sub = torch.arange(0, n, max(1, n // decode_points))[:decode_points].unsqueeze(0).to(device)
-
-    def synced(fn):
-        def run():
-            fn()
-            if device.type == "cuda":
-                torch.cuda.synchronize()
-        return run
-
+    t_nb, batch = timed_inputs(cfg, synthetic_scene(np.random.default_rng(0), n), repeats, device)
     rows = []
     for precision in ("float32", "bfloat16"):
-        def encode() -> torch.Tensor:
-            with torch.autocast(device.type, dtype=PRECISIONS[precision], enabled=precision != "float32"):
-                return model.encode(batch).float()
-
-        with torch.inference_mode():
-            feats = encode()
-            gen = torch.Generator(device=device)
-            t_enc = timed(synced(encode), repeats)
-            t_dec = timed(synced(lambda: model.sample(feats, generator=gen.manual_seed(0))), repeats)
-            t_sub = timed(synced(lambda: model.sample(feats, generator=gen.manual_seed(0), point_index=sub)), repeats)
+        t_enc, t_dec, t_sub, _ = network_times(model, batch, repeats, decode_points, precision, device)
         name = torch.cuda.get_device_name() if device.type == "cuda" else "cpu"
         rows.append({"config": "trained" if checkpoint else "paper (w=1.0)", "device": name,
                      "precision": precision, "N": n, "precompute (CPU)": t_nb, "encoder": t_enc,
