@@ -21,7 +21,8 @@ from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
 from parcelpick_env.envs.grasp import CONDITIONS, LINE_STEP, MOVES, Failure, MoveReport
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 from parcelpick_env.robot.arm import MAX_IK_JUMP
-from parcelpick_env.suction.cup import CupSpec, ToolState, contact_forces, cup_wrench, mesh_inertia
+from parcelpick_env.suction.cup import (CupSpec, ToolState, contact_forces, cup_wrench, mesh_inertia,
+                                        suction_ring_ratios)
 
 SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256)
 G = 9.8
@@ -85,6 +86,24 @@ def test_vacuum_law_and_rated_force():
     assert cup.rated_force(r, 0.0) < cup.rated_force(r, 0.5) < cup.rated_force(r, 1.0)
     seals = np.array([0.0, 0.5, 1.0])  # one law for arrays of seals (the oracle ranks many at once)
     np.testing.assert_allclose(cup.rated_force(r, seals), [cup.rated_force(r, float(v)) for v in seals])
+
+
+def test_one_wrench_ratios_are_the_batch_ratios_to_the_bit():
+    """The hold check's one-wrench fast path must give the batch path's very bits, edge cases included (no
+    capacity, a ring pulled off, -0.0 and NaN loads): a last-bit change would move every chaotic pile's episode."""
+    rng = np.random.default_rng(2)
+    for i in range(3000):
+        force, torque = rng.normal(size=3) * rng.choice([0.01, 1.0, 30.0]), rng.normal(size=3) * rng.choice([1e-3, 1.0])
+        if i % 7 == 0:
+            force[rng.integers(3)] = rng.choice([0.0, -0.0])
+        if i % 13 == 0:
+            force[rng.integers(3)] = np.nan
+        if i % 17 == 0:
+            torque[rng.integers(3)] = rng.choice([np.nan, np.inf])
+        vacuum, k = float(rng.choice([-1.0, 0.0, 5.0, 50.0])), float(rng.choice([0.0, K]))
+        one = suction_ring_ratios(force, torque, 0.5, ENV_CUP_RADIUS, k, vacuum)
+        batch = suction_ring_ratios(force[None], torque[None], 0.5, ENV_CUP_RADIUS, k, np.array([vacuum]))[0]
+        np.testing.assert_array_equal(one.view(np.int64), batch.view(np.int64))
 
 
 def test_mass_bound_is_the_arm_payload_or_the_cups_rated_pull():

@@ -208,6 +208,18 @@ def test_cross_rows_is_numpys_cross_product_for_every_shape_the_hot_loops_use(a_
     np.testing.assert_array_equal(cross_rows(np.eye(3)[0], np.eye(3)[1]), [0.0, 0.0, 1.0])  # x cross y = z
 
 
+def test_cross_rows_of_one_pair_is_the_general_path_to_the_bit():
+    """The scalar fast path for two float64 3-vectors must give the very bits of the (1, 3) row path: the IK and
+    the hold check take it at every step, and a last-bit change would move every trajectory of a chaotic pile."""
+    rng = np.random.default_rng(1)
+    scale = 10.0 ** rng.uniform(-9, 3, size=(2000, 2, 1))
+    pairs = rng.normal(size=(2000, 2, 3)) * scale
+    pairs[::50, 0, 1] = -0.0
+    for a, b in pairs:
+        np.testing.assert_array_equal(cross_rows(a, b).view(np.int64), cross_rows(a[None], b[None])[0].view(np.int64))
+    assert cross_rows(np.ones(3, dtype=np.float32), np.ones(3, dtype=np.float32)).shape == (3,)  # others: general
+
+
 def test_tool_motion_matches_finite_differences_of_forward_kinematics(client):
     arm = Gen3Arm(client)
     rng = np.random.default_rng(3)

@@ -87,6 +87,8 @@ def suction_ring_ratios(force: np.ndarray, torque: np.ndarray, mu: float, r: flo
     """
     force, torque = np.asarray(force, dtype=np.float64), np.asarray(torque, dtype=np.float64)
     vacuum = np.asarray(vacuum, dtype=np.float64)
+    if force.shape == (3,) and torque.shape == (3,) and vacuum.ndim == 0:
+        return _ring_ratios_one(force, torque, mu, r, k, float(vacuum))
     fx, fy, fz = force[..., 0], force[..., 1], force[..., 2]
     tx, ty, tz = torque[..., 0], torque[..., 1], torque[..., 2]
     friction_cap = mu * (fz + vacuum)
@@ -100,6 +102,21 @@ def suction_ring_ratios(force: np.ndarray, torque: np.ndarray, mu: float, r: flo
     out = loads / np.where(has_cap, caps, 1.0)
     # no capacity: infinite if loaded (or the ring is pulled off), else nothing to carry
     return np.where(has_cap, out, np.where((loads > 0.0) | (caps < 0.0), np.inf, 0.0))
+
+
+def _ring_ratios_one(force: np.ndarray, torque: np.ndarray, mu: float, r: float, k: float, vacuum: float
+                     ) -> np.ndarray:
+    """``suction_ring_ratios`` of one wrench, the hold check's case at every carry step: the same operations on
+    Python floats (IEEE doubles, so the same bits) without the batch's stacking and broadcasting."""
+    fx, fy, fz = force.tolist()
+    tx, ty, tz = torque.tolist()
+    friction_cap = mu * (fz + vacuum)
+    material_cap = math.pi * r * k
+    loads = (SQRT3 * abs(fx), SQRT3 * abs(fy), SQRT3 * abs(tz), SQRT2 * abs(tx), SQRT2 * abs(ty),
+             -fz if -fz > 0.0 or math.isnan(fz) else 0.0)  # np.maximum(-fz, 0): NaN kept, never -0.0
+    caps = (friction_cap, friction_cap, r * friction_cap, material_cap, material_cap, vacuum)
+    return np.array([load / cap if cap > 0.0 else (math.inf if load > 0.0 or cap < 0.0 else 0.0)
+                     for load, cap in zip(loads, caps)])
 
 
 # ----------------------------------------------------------------------------------- the held body
