@@ -17,6 +17,9 @@ surface with the shared bellows seal (``suction.cup_seal.bellows_seal``, the cup
 labels place it): a pick whose 40 mm lip hangs over a face's edge fails it, as it fails in the env (`no_seal:
 miss` or `edge`). The paper's labels score the seal with a 10 mm cup, so a model trained on them ranks points
 10-20 mm from an edge that the cell's cup cannot seal.
+
+With ``covered_factor`` below 1 (off by default) a passing pick on a surface that the observed pile rises above
+(``policies/exposure.py``: a parcel under another) has its score scaled by it, so the top layer goes first.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from parcelpick_env.suction.cup_seal import bellows_seal
 from parcelpick_env.suction.physical import physical_tool
 from parcelpick_env.suction.seal import SealScene
 from policies.base import Candidates, Policy
+from policies.exposure import ExposureConfig, exposed_picks
 from policies.heatmap import pixels_to_world
 from policies.observation import camera, depth_image
 
@@ -51,6 +55,10 @@ class ToolCheckConfig:
     candidates: int = 50
     stride: int = 3
     seal: bool = True
+    # a passing pick on a surface that something observed rises above (a parcel under another, policies/exposure.py)
+    # has its score multiplied by this, so the top layer goes first; 1.0: not judged
+    covered_factor: float = 1.0
+    exposure: ExposureConfig = field(default_factory=ExposureConfig)
     suction: SuctionConfig = field(default_factory=lambda: EnvConfig().suction)  # the cell's cup, as shipped
     seal_threshold: float = field(default_factory=lambda: float(EnvConfig().grasp.seal_threshold))
 
@@ -59,6 +67,11 @@ class ToolCheckConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ToolCheckConfig.{name} must be an int >= 1, got {value!r}")
+        if isinstance(self.covered_factor, bool) or not isinstance(self.covered_factor, (int, float)) \
+                or not 0.0 <= self.covered_factor <= 1.0:
+            raise ValueError(f"ToolCheckConfig.covered_factor must be a number in [0, 1], got {self.covered_factor!r}")
+        if not isinstance(self.exposure, ExposureConfig):
+            raise ValueError(f"ToolCheckConfig.exposure must be an ExposureConfig, got {type(self.exposure).__name__}")
         if not isinstance(self.seal, bool):
             raise ValueError(f"ToolCheckConfig.seal must be a bool, got {self.seal!r}")
         if not isinstance(self.suction, SuctionConfig):
@@ -156,6 +169,9 @@ class ToolCheckedPolicy(Policy):
             raise ValueError(why)
         self.inner = inner
         self.config = config or ToolCheckConfig()
+        if self.config.covered_factor < 1.0 and inner.obs_mode != "pointcloud":
+            raise ValueError(f"policy {inner.name!r} observes obs_mode={inner.obs_mode!r}; ToolCheckConfig.covered_factor "
+                             "< 1 judges covered surfaces on the observed cloud, which needs obs_mode='pointcloud'")
         self.name = f"{inner.name}+tool_check"
         self.obs_mode = inner.obs_mode
         self.last_passed = np.zeros(0, dtype=bool)
@@ -171,6 +187,11 @@ class ToolCheckedPolicy(Policy):
         passed[:checked] = check_picks(obs, info, ranked.points[:checked], ranked.normals[:checked], self.config)
         floor = min(0.0, float(ranked.scores.min())) if len(ranked) else 0.0
         scores = np.where(passed, ranked.scores, floor).astype(np.float32)
+        if self.config.covered_factor < 1.0 and checked:
+            exposed = np.ones(len(ranked), dtype=bool)
+            exposed[:checked] = exposed_picks(obs, info, ranked.points[:checked], self.config.exposure)
+            discounted = np.minimum(scores, scores * np.float32(self.config.covered_factor))
+            scores = np.where(passed & ~exposed, discounted, scores).astype(np.float32)
         order = np.argsort(-scores, kind="stable")[:top_k]
         self.last_passed = passed[order]
         return Candidates(points=ranked.points[order], normals=ranked.normals[order], scores=scores[order])

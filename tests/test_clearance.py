@@ -100,7 +100,8 @@ def test_summarise_of_episode_without_attempts_is_not_a_division_by_zero():
 @pytest.mark.parametrize("bad", [dict(objects=("spheres",)), dict(objects=()), dict(layouts=("piled",)),
                                  dict(episodes=0), dict(num_parcels=0), dict(num_parcels=51),
                                  dict(backend="spark"), dict(workers=0), dict(seed=-1), dict(max_attempts=0),
-                                 dict(env_kwargs={"num_parcels": 3})])
+                                 dict(env_kwargs={"num_parcels": 3}), dict(covered_factor=1.5),
+                                 dict(covered_factor=0.5, tool_check=False)])
 def test_config_rejects_bad_values(bad):
     with pytest.raises(ValueError):
         ClearanceConfig(**bad)
@@ -125,6 +126,26 @@ def test_episodes_run_with_the_tool_check_unless_it_is_off_or_the_policy_is_the_
 def test_cli_bad_value_exits_2(capsys):
     assert main(["--policy", "random", "--episodes", "0"]) == 2
     assert "episodes must be >= 1" in capsys.readouterr().err
+
+
+def test_cli_covered_factor_out_of_range_exits_2_naming_it(capsys):
+    assert main(["--policy", "random", "--covered-factor", "-0.5"]) == 2
+    assert "covered_factor must be a number in [0, 1]" in capsys.readouterr().err
+
+
+def test_covered_factor_reaches_the_tool_check_and_is_recorded(monkeypatch):
+    import policies.tool_check as tool_check
+
+    seen = []
+    real = tool_check.ToolCheckedPolicy.__init__
+
+    def spy(self, inner, config=None):
+        seen.append(config.covered_factor)
+        real(self, inner, config)
+
+    monkeypatch.setattr(tool_check.ToolCheckedPolicy, "__init__", spy)
+    summary = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), covered_factor=0.5), progress=False)
+    assert seen == [0.5] and summary["config"]["covered_factor"] == 0.5
 
 
 def test_record_dir_writes_one_replay_per_episode(tmp_path: Path):
