@@ -292,7 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--library-seed", type=int, default=d.library_seed)
     p.add_argument("--compression", choices=COMPRESSIONS, default=d.compression)
     p.add_argument("--labels", choices=LABEL_SETS, default=d.labels,
-                   help="channel set (docs/labels.md): the paper's, or whether the env's own cup would hold the pick")
+                   help="channel set (docs/labels.md): the paper's, whether the env's own cup would hold the pick, "
+                        "or SuctionNet's evaluator's")
     p.add_argument("--extra-labels", nargs="*", choices=LABEL_SETS, default=list(d.extra_labels),
                    help="more label sets stored beside the main one (labels_<set>, score_<set>)")
     p.add_argument("--no-images", action="store_true", help="store only the annotated points, not RGB-D")

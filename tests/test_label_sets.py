@@ -17,7 +17,8 @@ from parcelpick_env.suction.quality import PhysicalCell, definition_scorer, scor
 def root(tmp_path_factory):
     root = tmp_path_factory.mktemp("label_sets") / "data"
     config = GenerationConfig(scenes=1, split="test", seed=3, min_parcels=4, max_parcels=4, width=160, height=120,
-                              annotation_points=1024, scenes_per_shard=1, labels="paper", extra_labels=("physical",))
+                              annotation_points=1024, scenes_per_shard=1, labels="paper",
+                              extra_labels=("physical", "suctionnet"))
     generate(root, config, workers=1, progress=False)
     return root
 
@@ -25,7 +26,7 @@ def root(tmp_path_factory):
 @pytest.fixture(scope="module")
 def record(root):
     store = open_dataset(root)
-    assert store.config["extra_labels"] == ["physical"]
+    assert store.config["extra_labels"] == ["physical", "suctionnet"]
     return store.scene(0)
 
 
@@ -42,6 +43,20 @@ def test_physical_labels_are_the_physical_definition_on_the_true_scene(record):
     assert np.any(record["score_physical"] > 0) and np.any(record["score"] > 0)
     # the two sets disagree somewhere: they are different notions of a good suction
     assert not np.allclose(record["score_physical"], record["score"])
+
+
+def test_suctionnet_labels_are_the_evaluators_definition_on_the_true_scene(record):
+    """The set that scores each point as SuctionNet's evaluator re-scores a prediction (surface-centroid wrench, no
+    angle factor, the tool blocked by objects and the floor only), so a model can learn the AP's own target."""
+    on_parcel = record["object_ids"] >= 0
+    scorer = definition_scorer("suctionnet", scene_from_record(record))
+    again = score_definition("suctionnet", scorer, record["points"][on_parcel].astype(np.float64),
+                             record["normals"][on_parcel].astype(np.float64), record["object_ids"][on_parcel],
+                             visibility=record["object_visibility"])
+    np.testing.assert_allclose(record["labels_suctionnet"][on_parcel], again.as_array(), atol=1e-6)
+    np.testing.assert_allclose(record["score_suctionnet"], np.prod(record["labels_suctionnet"], axis=1), atol=1e-6)
+    wrench = 1
+    assert not np.allclose(record["labels_suctionnet"][:, wrench], record["labels"][:, wrench])  # centroid vs COM
 
 
 def test_label_oracle_reads_the_set_matching_the_quality(record):

@@ -2,4 +2,4 @@
 dataset config) name them without importing the scorer, pybullet and Open3D (parcelpick_env/suction/quality.py
 makes the labels; docs/labels.md, "Label sets")."""
 
-LABEL_SETS: tuple[str, ...] = ("paper", "physical")  # what dataset.generate --labels offers
+LABEL_SETS: tuple[str, ...] = ("paper", "physical", "suctionnet")  # what dataset.generate --labels offers
