@@ -91,9 +91,9 @@ class ClearanceConfig:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.max_attempts is not None and self.max_attempts < 1:
             raise ValueError(f"max_attempts must be >= 1 or None, got {self.max_attempts}")
-        if isinstance(self.covered_factor, bool) or not isinstance(self.covered_factor, (int, float)) \
-                or not 0.0 <= self.covered_factor <= 1.0:
-            raise ValueError(f"covered_factor must be a number in [0, 1], got {self.covered_factor!r}")
+        from policies.exposure import check_covered_factor
+
+        check_covered_factor(self.covered_factor, "covered_factor")
         if self.covered_factor < 1.0 and not self.tool_check:
             raise ValueError("covered_factor < 1 re-ranks within the tool check, which is off (--no-tool-check)")
         clash = sorted(set(self.env_kwargs) & set(RESERVED_ENV_KWARGS))

@@ -54,6 +54,14 @@ class ExposureConfig:
                 raise ValueError(f"ExposureConfig.{name} must be an int >= 1, got {value!r}")
 
 
+def check_covered_factor(value: object, name: str) -> float:
+    """``value`` as the score factor of a covered pick: a number in [0, 1] (1: not judged), else one ValueError
+    naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
+    return float(value)
+
+
 def bordered_segments(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, samples: np.ndarray,
                       config: ExposureConfig = ExposureConfig()) -> np.ndarray:
     """(labels.max() + 1,) bool: segments with at least ``min_samples`` of ``samples`` (depth points, world) within

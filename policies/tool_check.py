@@ -37,7 +37,7 @@ from parcelpick_env.suction.cup_seal import bellows_seal
 from parcelpick_env.suction.physical import physical_tool
 from parcelpick_env.suction.seal import SealScene
 from policies.base import Candidates, Policy
-from policies.exposure import ExposureConfig, exposed_picks
+from policies.exposure import ExposureConfig, check_covered_factor, exposed_picks
 from policies.heatmap import pixels_to_world
 from policies.observation import camera, depth_image
 
@@ -67,9 +67,7 @@ class ToolCheckConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ToolCheckConfig.{name} must be an int >= 1, got {value!r}")
-        if isinstance(self.covered_factor, bool) or not isinstance(self.covered_factor, (int, float)) \
-                or not 0.0 <= self.covered_factor <= 1.0:
-            raise ValueError(f"ToolCheckConfig.covered_factor must be a number in [0, 1], got {self.covered_factor!r}")
+        check_covered_factor(self.covered_factor, "ToolCheckConfig.covered_factor")
         if not isinstance(self.exposure, ExposureConfig):
             raise ValueError(f"ToolCheckConfig.exposure must be an ExposureConfig, got {type(self.exposure).__name__}")
         if not isinstance(self.seal, bool):
