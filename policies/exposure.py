@@ -46,7 +46,7 @@ class ExposureConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0):
                 raise ValueError(f"ExposureConfig.{name} must be a number > 0, got {value!r}")
-        if not (isinstance(self.wall_margin, (int, float)) and self.wall_margin >= 0):
+        if isinstance(self.wall_margin, bool) or not (isinstance(self.wall_margin, (int, float)) and self.wall_margin >= 0):
             raise ValueError(f"ExposureConfig.wall_margin must be a number >= 0, got {self.wall_margin!r}")
         for name in ("min_samples", "stride"):
             value = getattr(self, name)

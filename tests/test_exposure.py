@@ -114,6 +114,10 @@ def test_bad_exposure_settings_are_refused_naming_the_field(bad):
         ToolCheckConfig(**bad)
     with pytest.raises(ValueError, match="ExposureConfig.rise"):
         ExposureConfig(rise=-0.01)
+    with pytest.raises(ValueError, match="ExposureConfig.wall_margin"):
+        ExposureConfig(wall_margin=True)
+    with pytest.raises(ValueError, match="ExposureConfig.min_samples"):
+        ExposureConfig(min_samples=0)
 
 
 def test_exposure_needs_the_point_cloud(pile):
