@@ -93,7 +93,7 @@ class ClearanceConfig:
             raise ValueError(f"max_attempts must be >= 1 or None, got {self.max_attempts}")
         from policies.exposure import check_covered_factor
 
-        check_covered_factor(self.covered_factor, "covered_factor")
+        check_covered_factor("ClearanceConfig", self.covered_factor)
         if self.covered_factor < 1.0 and not self.tool_check:
             raise ValueError("covered_factor < 1 re-ranks within the tool check, which is off (--no-tool-check)")
         clash = sorted(set(self.env_kwargs) & set(RESERVED_ENV_KWARGS))

@@ -16,11 +16,14 @@ what a top-layer-first cell wants.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from numbers import Real
 from typing import Any, Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from parcelpick_env.config_checks import (require, require_finite_numbers, require_positive_ints,
+                                          require_positive_numbers)
 from policies.heatmap import pixels_to_world
 from policies.observation import camera, depth_image, in_box, point_cloud, workspace
 from policies.surface_segments import segment_surfaces
@@ -42,24 +45,17 @@ class ExposureConfig:
     match: float = 0.01
 
     def __post_init__(self) -> None:
-        for name in ("reach", "rise", "match"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0):
-                raise ValueError(f"ExposureConfig.{name} must be a number > 0, got {value!r}")
-        if isinstance(self.wall_margin, bool) or not (isinstance(self.wall_margin, (int, float)) and self.wall_margin >= 0):
-            raise ValueError(f"ExposureConfig.wall_margin must be a number >= 0, got {self.wall_margin!r}")
-        for name in ("min_samples", "stride"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"ExposureConfig.{name} must be an int >= 1, got {value!r}")
+        require_positive_numbers(self, ("reach", "rise", "match"))
+        require_finite_numbers(self, ("wall_margin",))
+        require(self.wall_margin >= 0, "ExposureConfig", f"wall_margin must be >= 0, got {self.wall_margin!r}")
+        require_positive_ints(self, ("min_samples", "stride"))
 
 
-def check_covered_factor(value: object, name: str) -> float:
-    """``value`` as the score factor of a covered pick: a number in [0, 1] (1: not judged), else one ValueError
-    naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
-        raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
-    return float(value)
+def check_covered_factor(owner: str, value: object) -> None:
+    """``value`` is the score factor of a covered pick, a number in [0, 1] (1: not judged); else one ValueError
+    naming ``owner`` and the field."""
+    ok = isinstance(value, Real) and not isinstance(value, bool) and 0.0 <= float(value) <= 1.0
+    require(ok, owner, f"covered_factor must be a number in [0, 1], got {value!r}")
 
 
 def bordered_segments(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, samples: np.ndarray,

@@ -67,7 +67,7 @@ class ToolCheckConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ToolCheckConfig.{name} must be an int >= 1, got {value!r}")
-        check_covered_factor(self.covered_factor, "ToolCheckConfig.covered_factor")
+        check_covered_factor("ToolCheckConfig", self.covered_factor)
         if not isinstance(self.exposure, ExposureConfig):
             raise ValueError(f"ToolCheckConfig.exposure must be an ExposureConfig, got {type(self.exposure).__name__}")
         if not isinstance(self.seal, bool):

@@ -112,11 +112,11 @@ def test_the_tool_check_puts_a_covered_pick_behind_an_exposed_one_only_when_aske
 def test_bad_exposure_settings_are_refused_naming_the_field(bad):
     with pytest.raises(ValueError, match="ToolCheckConfig"):
         ToolCheckConfig(**bad)
-    with pytest.raises(ValueError, match="ExposureConfig.rise"):
+    with pytest.raises(ValueError, match="ExposureConfig: rise"):
         ExposureConfig(rise=-0.01)
-    with pytest.raises(ValueError, match="ExposureConfig.wall_margin"):
+    with pytest.raises(ValueError, match="ExposureConfig: wall_margin"):
         ExposureConfig(wall_margin=True)
-    with pytest.raises(ValueError, match="ExposureConfig.min_samples"):
+    with pytest.raises(ValueError, match="ExposureConfig: min_samples"):
         ExposureConfig(min_samples=0)
 
 
