@@ -30,14 +30,19 @@ def record(root):
     return store.scene(0)
 
 
-def test_physical_labels_are_the_physical_definition_on_the_true_scene(record):
+def _assert_stored_set_is_its_definition(record, name: str) -> None:
+    """The stored ``labels_<name>`` are definition ``name`` re-scored on the true scene, ``score_<name>`` their product."""
     on_parcel = record["object_ids"] >= 0
-    scorer = definition_scorer("physical", scene_from_record(record))
-    again = score_definition("physical", scorer, record["points"][on_parcel].astype(np.float64),
+    scorer = definition_scorer(name, scene_from_record(record))
+    again = score_definition(name, scorer, record["points"][on_parcel].astype(np.float64),
                              record["normals"][on_parcel].astype(np.float64), record["object_ids"][on_parcel],
                              visibility=record["object_visibility"])
-    np.testing.assert_allclose(record["labels_physical"][on_parcel], again.as_array(), atol=1e-6)
-    np.testing.assert_allclose(record["score_physical"], np.prod(record["labels_physical"], axis=1), atol=1e-6)
+    np.testing.assert_allclose(record[f"labels_{name}"][on_parcel], again.as_array(), atol=1e-6)
+    np.testing.assert_allclose(record[f"score_{name}"], np.prod(record[f"labels_{name}"], axis=1), atol=1e-6)
+
+
+def test_physical_labels_are_the_physical_definition_on_the_true_scene(record):
+    _assert_stored_set_is_its_definition(record, "physical")
     seal = record["labels_physical"][:, 0]
     assert np.all((seal == 0) | (seal >= PhysicalCell().seal_threshold))  # below the env's threshold: nothing held
     assert np.any(record["score_physical"] > 0) and np.any(record["score"] > 0)
@@ -48,13 +53,7 @@ def test_physical_labels_are_the_physical_definition_on_the_true_scene(record):
 def test_suctionnet_labels_are_the_evaluators_definition_on_the_true_scene(record):
     """The set that scores each point as SuctionNet's evaluator re-scores a prediction (surface-centroid wrench, no
     angle factor, the tool blocked by objects and the floor only), so a model can learn the AP's own target."""
-    on_parcel = record["object_ids"] >= 0
-    scorer = definition_scorer("suctionnet", scene_from_record(record))
-    again = score_definition("suctionnet", scorer, record["points"][on_parcel].astype(np.float64),
-                             record["normals"][on_parcel].astype(np.float64), record["object_ids"][on_parcel],
-                             visibility=record["object_visibility"])
-    np.testing.assert_allclose(record["labels_suctionnet"][on_parcel], again.as_array(), atol=1e-6)
-    np.testing.assert_allclose(record["score_suctionnet"], np.prod(record["labels_suctionnet"], axis=1), atol=1e-6)
+    _assert_stored_set_is_its_definition(record, "suctionnet")
     wrench = 1
     assert not np.allclose(record["labels_suctionnet"][:, wrench], record["labels"][:, wrench])  # centroid vs COM
 
