@@ -29,13 +29,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from dataset.scene_record import bin_from_record, require_keys, scene_from_record  # noqa: E402,F401 (re-exported)
 from dataset.storage import Record, ShardedDataset, open_dataset  # noqa: E402
 from eval.metrics import (  # noqa: E402
     DEFAULT_MAX_K,
@@ -47,11 +48,7 @@ from eval.metrics import (  # noqa: E402
 )
 from eval.stats import format_interval  # noqa: E402
 from eval.suctionnet_format import from_suctionnet, read_view, to_suctionnet, view_path, write_view  # noqa: E402
-from dataset.suctionnet.models import is_suctionnet_record  # noqa: E402
-from dataset.suctionnet.models import world_meshes as suctionnet_world_meshes  # noqa: E402
-from dataset.suctionnet.reader import ASSET_PREFIX as SUCTIONNET_ASSET_PREFIX  # noqa: E402
 from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
-from parcelpick_env.assets.parcel import ParcelAsset  # noqa: E402
 from parcelpick_env.cli import (  # noqa: E402
     POLICY_ARG,
     UsageError,
@@ -63,8 +60,7 @@ from parcelpick_env.cli import (  # noqa: E402
     run_cli,
     usage_exit,
 )
-from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene  # noqa: E402
-from parcelpick_env.suction.geometry import surface_centroid  # noqa: E402
+from parcelpick_env.scene.scene import Scene  # noqa: E402
 from parcelpick_env.suction.quality import AP_DEFINITIONS, check_definition, definition_scorer, score_definition  # noqa: E402
 from parcelpick_env.suction.visibility import object_visibility  # noqa: E402
 from policies.base import Candidates, Policy  # noqa: E402
@@ -78,7 +74,6 @@ CHANNELS = ("seal", "wrench", "collision")
 # What the evaluator reads from each stored scene (dataset/annotate.py writes them).
 # The bin is the cell's known geometry, as in the env's info['workspace'], not ground truth about the pile.
 OBSERVATION_KEYS = ("points", "normals", "rgb", "depth", "intrinsics", "extrinsics", "bin_spec")
-GROUND_TRUTH_KEYS = ("object_asset_ids", "object_categories", "object_poses", "bin_spec", "library_seed")
 
 
 @dataclass(frozen=True)
@@ -112,61 +107,13 @@ class APConfig:
             raise ValueError(f"APConfig.thresholds must be non-empty and in [0, 1], got {self.thresholds!r}")
 
 
-def _require(record: Record, keys: Sequence[str], where: str) -> None:
-    missing = [k for k in keys if k not in record]
-    if missing:
-        hint = "; regenerate the dataset with images (without --no-images)" if {"rgb", "depth"} & set(missing) else ""
-        raise ValueError(f"{where} lacks {missing}{hint}")
-
-
-def scene_from_record(record: Record, library: AssetLibrary | None = None) -> Scene:
-    """The true pile of a stored scene: library meshes placed at the stored poses, and the bin. A view read from a
-    SuctionNet-1Billion tree (``dataset.suctionnet``) brings its own object models instead."""
-    asset_ids = np.asarray(record.get("object_asset_ids", [])).reshape(-1)
-    if is_suctionnet_record(record) and len(asset_ids) and str(asset_ids[0]).startswith(SUCTIONNET_ASSET_PREFIX):
-        parcels = _suctionnet_parcels(record)
-    else:
-        _require(record, GROUND_TRUTH_KEYS, "scene record")
-        if library is None:
-            library = AssetLibrary.default(int(record["library_seed"]))
-        poses = np.asarray(record["object_poses"], dtype=np.float64).reshape(-1, 7)
-        if len(asset_ids) != len(poses):
-            raise ValueError(f"scene record has {len(asset_ids)} asset ids but {len(poses)} poses")
-        parcels = [ParcelState(object_id=k, body_id=-1, asset=library.get(str(asset_id)), position=pose[:3],
-                               orientation=pose[3:], friction=float("nan"))
-                   for k, (asset_id, pose) in enumerate(zip(asset_ids, poses))]
-    return Scene(parcels=parcels, bin=bin_from_record(record), seed=int(record.get("scene_seed", -1)),
-                 layout=str(record.get("layout", "")), object_set=str(record.get("object_set", "")),
-                 split=str(record.get("split", "")))
-
-
-def _suctionnet_parcels(record: Record) -> list[ParcelState]:
-    """SuctionNet's objects, which the asset library does not hold: each posed model is an asset at the identity
-    pose, with a unit mass at its surface centroid (SuctionNet has no masses: only the ``suctionnet`` and
-    ``paper_compat`` definitions apply to such scenes)."""
-    parcels = []
-    for k, (asset_id, mesh) in enumerate(zip(np.asarray(record["object_asset_ids"]).reshape(-1),
-                                             suctionnet_world_meshes(record))):
-        centroid = surface_centroid(mesh)
-        asset = ParcelAsset(asset_id=str(asset_id), category="suctionnet", split="test", mesh=mesh, mass=1.0,  # type: ignore[arg-type]
-                            com=centroid, rgba=(1.0, 1.0, 1.0, 1.0), extents=np.asarray(mesh.extents))
-        parcels.append(ParcelState(object_id=k, body_id=-1, asset=asset, position=np.zeros(3),
-                                   orientation=np.array([0.0, 0.0, 0.0, 1.0]), friction=float("nan")))
-    return parcels
-
-
-def bin_from_record(record: Record) -> BinSpec:
-    bin_fields = json.loads(str(record["bin_spec"]))
-    return BinSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in bin_fields.items()})
-
-
 def observation_from_record(record: Record, num_points: int | None, rng: np.random.Generator
                             ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The env-style (obs, info) of a stored capture; the cloud is resampled to ``num_points``.
 
     ``info`` holds what the env gives policies: the camera, and the bin as ``workspace``.
     """
-    _require(record, OBSERVATION_KEYS, "scene record")
+    require_keys(record, OBSERVATION_KEYS, "scene record")
     points = np.asarray(record["points"], dtype=np.float32)
     normals = np.asarray(record["normals"], dtype=np.float32)
     if num_points is not None and num_points != len(points):
@@ -219,7 +166,7 @@ def label_score_key(record: Record, quality: str) -> str:
 def label_observation(record: Record, quality: str = "suctionnet") -> dict[str, np.ndarray]:
     """The AP's privileged channel (``policies.oracle.LABEL_KEYS``): the stored labelled points and the stored label
     score of the set matching ``quality``. Given to privileged policies only (the registered ``oracle``)."""
-    _require(record, ("points", "normals", "score"), "scene record")
+    require_keys(record, ("points", "normals", "score"), "scene record")
     return {"labelled_points": np.asarray(record["points"], dtype=np.float32),
             "labelled_normals": np.asarray(record["normals"], dtype=np.float32),
             "label_score": np.asarray(record[label_score_key(record, quality)], dtype=np.float32)}

@@ -10,6 +10,7 @@ from policies.base import Policy
 # name -> "module.path:ClassName"; import happens only in make_policy
 _LAZY: dict[str, str] = {
     "diffusion": "policies.diffusion.policy:DiffusionSuctionPolicy",
+    "diffusion_vote": "policies.diffusion.vote_policy:DiffusionCentreVotePolicy",  # + centre votes (not in the paper)
     "normal_std": "policies.normal_std:NormalStdPolicy",
     "dexnet": "policies.dexnet.policy:DexNetPolicy",
     "cao": "policies.cao.policy:CaoPolicy",

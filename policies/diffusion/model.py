@@ -26,8 +26,8 @@ class DiffusionSuction(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = build_encoder(config)
-        cond_dim = self.encoder.out_channels + segment_channels(config, "decoder")
-        self.decoder = PCDB(cond_dim, config.num_channels, config.decoder_dim, config.head_hidden,
+        self.encode_width: int = self.encoder.out_channels + segment_channels(config, "decoder")  # encode()'s F
+        self.decoder = PCDB(self.encode_width, config.num_channels, config.decoder_dim, config.head_hidden,
                             config.attention_ratio)
         self.scheduler = DiffusionSchedule.from_config(config)
 

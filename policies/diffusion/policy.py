@@ -103,14 +103,8 @@ class DiffusionSuctionPolicy(Policy):
         subset = None
         if 0 < self.decode_points < len(points):
             subset = np.sort(grid_sample(points, self.decode_points))
-        batch = {"points": points, "normals": normals,  # the finest interpolation only where the decoder reads
-                 **model_inputs(points, normals, cfg, workers=torch.get_num_threads(), rows=subset)}
-        tensors = {k: torch.from_numpy(np.ascontiguousarray(v)).unsqueeze(0).to(self.device) for k, v in batch.items()}
-        low = self.precision != "float32"
-        rows = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
+        features = self.encode_cloud(points, normals, subset)  # (1, M, F), at the decoded points only
         with torch.inference_mode():
-            with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=low):
-                features = self.model.encode(tensors, rows).float()  # at the decoded points only
             out = self.model.sample(features, self.inference_steps, self._generator,
                                     return_trajectory=self.record_trajectory, draws=self.draws)
         scores, trajectory = out if self.record_trajectory else (out, None)
@@ -119,5 +113,22 @@ class DiffusionSuctionPolicy(Policy):
         channel_scores = scores[0].float().cpu().numpy()
         if trajectory is not None:
             self.last_trajectory = Trajectory(points=points, maps=trajectory[:, 0].float().cpu().numpy())
-        quality = channel_scores.prod(axis=1)  # product of seal, wrench, collision (, visibility)
+        quality = self.quality(points, normals, features[0], channel_scores)
         return select_candidates(points, normals, quality, top_k=top_k, nms_radius=self.nms_radius)
+
+    def encode_cloud(self, points: np.ndarray, normals: np.ndarray, subset: np.ndarray | None = None) -> torch.Tensor:
+        """The encoder's per-point condition features (1, M, F) of one cloud, at the ``subset`` rows (all: None)."""
+        batch = {"points": points, "normals": normals,  # the finest interpolation only where the decoder reads
+                 **model_inputs(points, normals, self.config, workers=torch.get_num_threads(), rows=subset)}
+        tensors = {k: torch.from_numpy(np.ascontiguousarray(v)).unsqueeze(0).to(self.device) for k, v in batch.items()}
+        low = self.precision != "float32"
+        rows = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
+        with torch.inference_mode():
+            with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=low):
+                return self.model.encode(tensors, rows).float()
+
+    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
+                ) -> np.ndarray:
+        """(M,) ranking score of the decoded points: the product of the sampled channels (seal, wrench, collision
+        (, visibility)). ``features`` (M, F) are the encoder's, for variants that read more from them."""
+        return channel_scores.prod(axis=1)

@@ -1,0 +1,200 @@
+"""Centre votes (policies/diffusion/centre_vote.py): the clustering, the targets and the wrench on known answers, the
+head's training, its pairing with one Diffusion-Suction checkpoint, and the ``diffusion_vote`` policy's score."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dataset.config import GenerationConfig
+from dataset.generate import generate
+from dataset.scene_record import scene_from_record
+from dataset.storage import open_dataset
+from parcelpick_env.cli import run_cli
+from parcelpick_env.suction.quality import definition_config, definition_scorer
+from policies.diffusion.centre_vote import (DEFAULT_CENTRE_VOTE, CentreVoteConfig, CentreVoteHead, cluster_centres,
+                                            file_sha256, load_centre_vote, vote_wrench)
+from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model, save_checkpoint
+from policies.diffusion.config import DiffusionConfig
+from policies.diffusion.model import build_model
+from policies.diffusion.policy import DiffusionSuctionPolicy
+from policies.diffusion.synthetic import synthetic_scene
+from policies.diffusion.train_centre_vote import CentreVoteTraining, fit, main, vote_targets
+from policies.diffusion.vote_policy import DiffusionCentreVotePolicy
+from policies.surface_segments import LEVER_UNIT
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("centre_vote") / "data"
+    generate(root, GenerationConfig(scenes=2, split="train", seed=3, min_parcels=3, max_parcels=3, width=160,
+                                    height=120, annotation_points=512, scenes_per_shard=2), workers=1, progress=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def record(data):
+    store = open_dataset(data)
+    try:
+        return store.scene(0)
+    finally:
+        store.close()
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    path = tmp_path_factory.mktemp("centre_vote_model") / "tiny.pt"
+    save_checkpoint(path, build_model(DiffusionConfig.tiny(), seed=1))
+    return path
+
+
+def test_each_vote_is_averaged_with_its_nearest_votes_within_the_radius():
+    votes = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.025, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    every = cluster_centres(votes, radius=0.02, neighbours=8)
+    np.testing.assert_allclose(every[:, 0], [0.005, 0.035 / 3, 0.0175, 1.0])  # {0,1}, {0,1,2}, {1,2}, alone
+    np.testing.assert_allclose(every[3], votes[3])
+    nearest = cluster_centres(votes, radius=0.02, neighbours=2)  # the middle vote keeps its nearer partner only
+    np.testing.assert_allclose(nearest[:, 0], [0.005, 0.005, 0.0175, 1.0])
+    np.testing.assert_allclose(cluster_centres(votes, radius=0.02, neighbours=1), votes)
+    np.testing.assert_array_equal(cluster_centres(np.zeros((0, 3)), 0.04, 64).shape, (0, 3))
+    with pytest.raises(ValueError, match="radius"):
+        cluster_centres(votes, 0.0, 8)
+    with pytest.raises(ValueError, match="neighbours"):
+        cluster_centres(votes, 0.02, 0)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        cluster_centres(votes[:, :2], 0.04, 8)
+
+
+def test_targets_point_at_the_surface_centroid_and_its_wrench_is_the_evaluators(record):
+    """The head learns the centre the evaluator's wrench is about: vote_wrench there is the scorer's wrench."""
+    points = np.asarray(record["points"], dtype=np.float64)
+    normals = np.asarray(record["normals"], dtype=np.float64)
+    object_ids = np.asarray(record["object_ids"], dtype=np.int64)
+    offsets, on_parcel = vote_targets(record, points, object_ids)
+    np.testing.assert_array_equal(on_parcel, object_ids >= 0)
+    assert on_parcel.any() and not on_parcel.all()  # the bin floor is in the cloud, and has no centre
+    scorer = definition_scorer("suctionnet", scene_from_record(record))
+    np.testing.assert_allclose((points + offsets)[on_parcel], scorer.surface_centroids[object_ids[on_parcel]],
+                               atol=1e-9)
+    np.testing.assert_array_equal(offsets[~on_parcel], 0.0)
+    p, n, ids = points[on_parcel], normals[on_parcel], object_ids[on_parcel]
+    np.testing.assert_allclose(vote_wrench(p, n, p + offsets[on_parcel], "suctionnet"), scorer.wrench(p, n, ids),
+                               atol=1e-6)
+
+
+def test_a_vote_beside_an_upward_contact_costs_the_torque_of_the_unit_weight_on_that_lever():
+    """Known answer: a level contact, its centre d to the side: load m g d over the threshold (SuctionNet's frame)."""
+    config = definition_config("suctionnet")
+    d = 0.004
+    wrench = vote_wrench(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([[d, 0.0, -0.05]]), "suctionnet")
+    expected = 1.0 - config.unit_mass * config.gravity * d / config.torque_threshold
+    assert 0.0 < expected < 1.0
+    assert wrench[0] == pytest.approx(expected, rel=1e-6)
+    below = vote_wrench(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, -0.05]]), "suctionnet")
+    assert below[0] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="definition"):
+        vote_wrench(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.zeros((1, 3)), "physical")
+
+
+@pytest.mark.parametrize("fields, message", [({"cluster_radius": 0.0}, "cluster_radius"),
+                                             ({"cluster_neighbours": 0}, "cluster_neighbours"),
+                                             ({"wrench_definition": "physical"}, "wrench_definition"),
+                                             ({"hidden": ()}, "hidden"), ({"hidden": (8, 0)}, "hidden")])
+def test_bad_vote_configs_name_the_field(fields, message):
+    with pytest.raises(ValueError, match=message):
+        CentreVoteConfig(**fields)
+
+
+def test_the_head_learns_offsets_that_its_inputs_determine():
+    rng = np.random.default_rng(0)
+    inputs = torch.from_numpy(rng.normal(size=(2000, 11)).astype(np.float32))
+    targets = inputs[:, :3] * 0.5 - inputs[:, 3:6] * 0.3  # in LEVER_UNIT
+    head = CentreVoteHead(8, CentreVoteConfig(hidden=(32, 32)))
+    losses = fit(head, inputs, targets, CentreVoteTraining(steps=400, batch_points=256, lr=3e-3), seed=0)
+    assert losses[-1] < 0.15 * losses[0]
+    with pytest.raises(ValueError, match="no parcel points"):
+        fit(head, inputs[:0], targets[:0], CentreVoteTraining(steps=1), seed=0)
+
+
+def _constant_head(in_features: int, offset_m: tuple[float, float, float]) -> CentreVoteHead:
+    """A head that votes every point's centre at ``offset_m`` from it (no clustering: a tiny radius)."""
+    head = CentreVoteHead(in_features, CentreVoteConfig(hidden=(4,), cluster_radius=1e-9))
+    with torch.no_grad():
+        for p in head.parameters():
+            p.zero_()
+        head.mlp[-1].bias.copy_(torch.tensor(offset_m) / LEVER_UNIT)
+    return head.eval()
+
+
+def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
+    model, _ = load_model(DEFAULT_CHECKPOINT)  # trained: its scores are not all clamped to 0, as a fresh net's are
+    obs = {k: v for k, v in synthetic_scene(np.random.default_rng(4), 2048).items() if k in ("points", "normals")}
+    base = DiffusionSuctionPolicy(model=model, record_trajectory=False).predict(obs)
+    assert base.scores.max() > 0
+    m, n = 64, np.tile([0.0, 0.0, 1.0], (64, 1)).astype(np.float32)
+    points = np.random.default_rng(1).uniform(-0.1, 0.1, (m, 3)).astype(np.float32)
+    channels = np.random.default_rng(2).uniform(0.2, 1.0, (m, 3)).astype(np.float32)
+    features = torch.zeros(m, model.encode_width)
+    config = definition_config("suctionnet")
+    for offset, factor in (((0.0, 0.0, -0.05), 1.0),
+                           ((0.003, 0.0, -0.05), 1.0 - config.unit_mass * config.gravity * 0.003 / config.torque_threshold),
+                           ((0.5, 0.0, 0.0), 0.0)):
+        policy = DiffusionCentreVotePolicy(model=model, centre_head=_constant_head(model.encode_width, offset),
+                                           record_trajectory=False)
+        np.testing.assert_allclose(policy.quality(points, n, features, channels), channels.prod(axis=1) * factor,
+                                   rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(policy.last_centres, points + np.asarray(offset), atol=1e-6)
+        picks = policy.predict(obs)  # predict ranks by the same score
+        if factor == 1.0:
+            np.testing.assert_array_equal(picks.points, base.points)
+            np.testing.assert_array_equal(picks.scores, base.scores)
+        if factor == 0.0:  # half a metre of lever: only contacts whose frame nearly hides that torque keep a score
+            assert picks.scores.max() < 0.5 * base.scores.max()
+
+
+def test_the_trainer_writes_a_head_that_only_its_own_model_reads(data, tiny_checkpoint, tmp_path):
+    out = tmp_path / "head.pt"
+    args = ["--data", str(data), "--checkpoint", str(tiny_checkpoint), "--out", str(out), "--steps", "30",
+            "--batch-points", "256", "--threads", "1", "--seed", "3", "--no-progress"]
+    assert run_cli(main, args) == 0
+    head, payload = load_centre_vote(out, file_sha256(tiny_checkpoint))
+    provenance = payload["extra"]["provenance"]
+    assert provenance["seed"] == 3 and "train_centre_vote" in provenance["command"]
+    assert head.in_features == build_model(DiffusionConfig.tiny()).encode_width
+    obs = {k: v for k, v in synthetic_scene(np.random.default_rng(5), 512).items() if k in ("points", "normals")}
+    picks = DiffusionCentreVotePolicy(checkpoint=tiny_checkpoint, centre_vote=out, record_trajectory=False).predict(obs)
+    assert len(picks) > 0 and np.all(np.isfinite(picks.scores))
+    other = tmp_path / "other.pt"
+    save_checkpoint(other, build_model(DiffusionConfig.tiny(), seed=9))
+    with pytest.raises(ValueError, match="retrain"):
+        DiffusionCentreVotePolicy(checkpoint=other, centre_vote=out)
+
+
+@pytest.mark.parametrize("extra, message", [(["--steps", "0"], "steps"), (["--scenes", "0"], "--scenes")])
+def test_the_trainer_refuses_bad_arguments_in_one_line(data, tiny_checkpoint, tmp_path, capsys, extra, message):
+    args = ["--data", str(data), "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "h.pt"), *extra]
+    assert run_cli(main, args) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "h.pt").exists()
+
+
+def test_the_shipped_head_reads_the_shipped_model_and_refuses_another(tmp_path):
+    policy = DiffusionCentreVotePolicy(record_trajectory=False)
+    assert policy.centre_head.in_features == policy.model.encode_width
+    physical = DEFAULT_CENTRE_VOTE.parent / "diffusion_suction_physical_labels.pt"
+    with pytest.raises(ValueError, match="retrain"):
+        DiffusionCentreVotePolicy(checkpoint=physical)
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="corrupt"):
+        DiffusionCentreVotePolicy(centre_vote=corrupt)
