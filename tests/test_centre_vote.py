@@ -179,6 +179,18 @@ def test_the_trainer_writes_a_head_that_only_its_own_model_reads(data, tiny_chec
         DiffusionCentreVotePolicy(checkpoint=other, centre_vote=out)
 
 
+def test_the_same_seed_trains_the_same_head(data, tiny_checkpoint, tmp_path):
+    def train(seed: int, name: str) -> dict:
+        out = tmp_path / name
+        assert run_cli(main, ["--data", str(data), "--checkpoint", str(tiny_checkpoint), "--out", str(out), "--steps",
+                              "5", "--batch-points", "64", "--threads", "1", "--seed", str(seed), "--no-progress"]) == 0
+        return load_centre_vote(out)[0].state_dict()
+
+    first, again, other = train(0, "a.pt"), train(0, "b.pt"), train(1, "c.pt")
+    assert all(torch.equal(first[k], again[k]) for k in first)
+    assert not all(torch.equal(first[k], other[k]) for k in first)
+
+
 @pytest.mark.parametrize("extra, message", [(["--steps", "0"], "steps"), (["--scenes", "0"], "--scenes")])
 def test_the_trainer_refuses_bad_arguments_in_one_line(data, tiny_checkpoint, tmp_path, capsys, extra, message):
     args = ["--data", str(data), "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "h.pt"), *extra]

@@ -144,6 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     policy = DiffusionSuctionPolicy(args.checkpoint, record_trajectory=False)
     inputs, targets = collect(args.data, policy, args.scenes, not args.no_progress)
+    torch.manual_seed(args.seed)  # the head's initial weights
     head = CentreVoteHead(policy.model.encode_width, CentreVoteConfig())
     losses = fit(head, inputs, targets, training, args.seed, not args.no_progress)
     provenance = training_provenance(command, args.seed, args.data, started)
