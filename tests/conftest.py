@@ -24,6 +24,17 @@ SMALL_SCENE_SEED = 7
 SMALL_CAMERA = CameraConfig(width=160, height=120, depth_noise_std=0.0)  # noise-free: exact geometry
 
 
+@pytest.fixture
+def one_torch_thread():
+    """One intra-op torch thread: OpenMP spin-waiting on an oversubscribed 2-core box is ~20x slower."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 class SmallScene(NamedTuple):
     scene: Scene
     frame: CameraFrame

@@ -25,12 +25,7 @@ from policies.diffusion.vote_policy import DiffusionCentreVotePolicy
 from policies.surface_segments import LEVER_UNIT
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
@@ -173,6 +168,9 @@ def test_the_trainer_writes_a_head_that_only_its_own_model_reads(data, tiny_chec
     obs = {k: v for k, v in synthetic_scene(np.random.default_rng(5), 512).items() if k in ("points", "normals")}
     picks = DiffusionCentreVotePolicy(checkpoint=tiny_checkpoint, centre_vote=out, record_trajectory=False).predict(obs)
     assert len(picks) > 0 and np.all(np.isfinite(picks.scores))
+    twice = tmp_path / "twice.pt"  # several directories: every one's parcel points
+    assert run_cli(main, [*args[:2], str(data), *args[2:5], str(twice), *args[6:]]) == 0
+    assert load_centre_vote(twice)[1]["extra"]["points"] == 2 * payload["extra"]["points"]
     other = tmp_path / "other.pt"
     save_checkpoint(other, build_model(DiffusionConfig.tiny(), seed=9))
     with pytest.raises(ValueError, match="retrain"):

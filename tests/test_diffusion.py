@@ -32,13 +32,7 @@ from policies.surface_segments import LEVER_UNIT, offsets_to_centroids, segment_
 N = 512
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One intra-op thread: OpenMP spin-waiting on an oversubscribed 2-core box is ~20x slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,7 @@
 """Train the centre vote head (``centre_vote.py``) on a Diffusion-Suction checkpoint's frozen features.
 
-    python -m policies.diffusion.train_centre_vote --data data/train_sn \
-        --out policies/diffusion/checkpoints/centre_vote.pt          # the shipped head: ~3 min on 2 cores
+    python -m policies.diffusion.train_centre_vote --data data/train_sn [data/more ...] \
+        --out policies/diffusion/checkpoints/centre_vote.pt
 
 Per stored scene: the checkpoint's encoder features at the stored cloud (as the policy computes them), and for
 every point on a parcel (the stored ``object_ids``) the offset to that parcel's surface centroid, from the true
@@ -30,7 +30,7 @@ from policies.diffusion.centre_vote import (CentreVoteConfig, CentreVoteHead, fi
                                             save_centre_vote)
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT
 from policies.diffusion.policy import DiffusionSuctionPolicy
-from policies.provenance import command_line, training_provenance
+from policies.provenance import command_line, manifest_sha256, training_provenance
 from policies.surface_segments import LEVER_UNIT
 
 
@@ -70,7 +70,7 @@ def collect(data: Path, policy: DiffusionSuctionPolicy, scenes: int | None, prog
     inputs, targets = [], []
     try:
         total = len(store) if scenes is None else min(scenes, len(store))
-        for i in tqdm(range(total), desc="features", disable=not progress, file=sys.stderr):
+        for i in tqdm(range(total), desc=f"features {data}", disable=not progress, file=sys.stderr):
             record = store.scene(i)
             points = np.asarray(record["points"], dtype=np.float32)
             normals = np.asarray(record["normals"], dtype=np.float32)
@@ -112,11 +112,12 @@ def fit(head: CentreVoteHead, inputs: torch.Tensor, targets: torch.Tensor, train
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     defaults = CentreVoteTraining()
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, required=True, help="a dataset directory (dataset.generate)")
+    parser.add_argument("--data", type=Path, nargs="+", required=True,
+                        help="one or more dataset directories (dataset.generate)")
     parser.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT,
                         help="the Diffusion-Suction checkpoint whose features the head reads (default: shipped)")
     parser.add_argument("--out", type=Path, default=Path("runs/centre_vote.pt"), help="where to write the head")
-    parser.add_argument("--scenes", type=int, default=None, help="use the first N scenes (default: all)")
+    parser.add_argument("--scenes", type=int, default=None, help="use the first N scenes of each (default: all)")
     parser.add_argument("--steps", type=int, default=defaults.steps)
     parser.add_argument("--batch-points", type=int, default=defaults.batch_points)
     parser.add_argument("--lr", type=float, default=defaults.lr)
@@ -130,7 +131,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     command = command_line("policies.diffusion.train_centre_vote", argv)
     started = time.perf_counter()
-    check_input_dir(args.data, "--data")
+    for data in args.data:
+        check_input_dir(data, "--data")
     check_input_file(args.checkpoint, "--checkpoint")
     check_output_path(args.out, "--out")
     if args.scenes is not None and args.scenes < 1:
@@ -143,13 +145,15 @@ def main(argv: list[str] | None = None) -> None:
         raise UsageError(str(e)) from e
     torch.set_num_threads(args.threads)
     policy = DiffusionSuctionPolicy(args.checkpoint, record_trajectory=False)
-    inputs, targets = collect(args.data, policy, args.scenes, not args.no_progress)
+    parts = [collect(data, policy, args.scenes, not args.no_progress) for data in args.data]
+    inputs, targets = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     torch.manual_seed(args.seed)  # the head's initial weights
     head = CentreVoteHead(policy.model.encode_width, CentreVoteConfig())
     losses = fit(head, inputs, targets, training, args.seed, not args.no_progress)
-    provenance = training_provenance(command, args.seed, args.data, started)
+    provenance = training_provenance(command, args.seed, args.data[0], started)  # the first manifest; all below
     save_centre_vote(args.out, head, file_sha256(args.checkpoint),
                      {"provenance": provenance, "losses": losses, "points": int(len(inputs)),
+                      "dataset_manifests_sha256": {str(d): manifest_sha256(d) for d in args.data},
                       "training": {k: getattr(training, k) for k in training.__dataclass_fields__}})
     print(f"wrote {args.out}: {len(inputs)} parcel points, final loss {losses[-1]:.4f}, "
           f"{provenance['wall_time_s']:.0f} s")
