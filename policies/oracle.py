@@ -42,7 +42,8 @@ How it picks, per parcel, on the true meshes:
    candidates, sealing ones first, then the smallest worst ring ratio, approaches that already failed last
    (``_best_guesses``), as a real cell would rather than stand idle.
 4. Reachability (``ArmReach``): the arm's own numpy IK, chained from the pre-grasp point through the
-   contact up to the carrying height; the first ranked candidate it reaches is proposed, the unreachable
+   contact up to the carrying height, and the cell's own lift rule from the contact (``ArmReach.lifts``:
+   ``Gen3Arm.line_path``, no IK branch jump); the first ranked candidate that passes is proposed, the unreachable
    ones checked go to the back (never out). Where it reaches none of the first ``reach_checks``, the env's
    own IK (on a private copy of the arm) checks the first ``confirm_checks`` again, and where that refuses
    them too, the best candidate of every other parcel is checked in rank order.
@@ -448,6 +449,20 @@ class ArmReach:
                 return True
         return False
 
+    def lifts(self, point: np.ndarray, axis: np.ndarray, top: float, ready: np.ndarray | None) -> bool:
+        """Whether the cell's straight lift from the contact ``point`` to height ``top`` solves by its own rule
+        (``Gen3Arm.line_path``: IK every 1.5 cm, no branch jump, yaw free) on either IK branch its plan may take
+        (``PickExecutor._plan``: the one nearest the ready pose, else the Kinova home's). A pick on a tilted face
+        can come down on a branch whose wrist reaches its limit part-way up: the cell then has the parcel on the
+        cup and cannot raise it (the report's `unreachable: lift, ik jumped 1 rad`)."""
+        arm, point = self._solver(), np.asarray(point, dtype=np.float64)
+        end = np.array([point[0], point[1], top])
+        for seed in (ready, self.seed):
+            q = None if seed is None else arm.ik(point, axis, seed=seed)
+            if q is not None and arm.line_path(q, end, axis)[0] is not None:
+                return True
+        return False
+
     def close(self) -> None:
         if self._arm is not None:
             if pb.isConnected(self._arm.client):
@@ -634,23 +649,27 @@ class OraclePolicy(Policy):
             rest = order[(order != i) & ~np.isin(order, refused)]
             return np.concatenate([[i], rest, np.asarray(refused, dtype=order.dtype)])
 
+        ready = self.reach.ready_pose(truth.bin_centre, truth.floor_z) if len(order) else None
+
+        def lifted(i: int) -> bool:  # the cell's own lift rule, up to the carrying height
+            return self.reach.lifts(points[i], -normals[i], float(line(i, transport=False)[-1, 2]), ready)
+
         checked = [int(i) for i in order[:c.reach_checks]]
         unreachable = []
         for i in checked:
-            if self.reach.reaches(line(i), -normals[i]):
+            if self.reach.reaches(line(i), -normals[i]) and lifted(i):
                 return first(i, unreachable)
             unreachable.append(i)
         if not checked:
             return order
-        ready = self.reach.ready_pose(truth.bin_centre, truth.floor_z)
         for i in checked[:c.confirm_checks]:
-            if self.reach.confirms(line(i, transport=False), -normals[i], ready):
+            if self.reach.confirms(line(i, transport=False), -normals[i], ready) and lifted(i):
                 return first(i, [j for j in unreachable if j != i])
         _, best = np.unique(owner[order], return_index=True)  # each parcel's best-ranked candidate
         seen = set(owner[checked].tolist())
         others = [int(i) for i in order[np.sort(best)] if int(owner[i]) not in seen]
         for i in others[:c.reach_checks]:
-            if self.reach.reaches(line(i), -normals[i]):
+            if self.reach.reaches(line(i), -normals[i]) and lifted(i):
                 return first(i, unreachable)
             unreachable.append(i)
         return order

@@ -225,6 +225,8 @@ def test_oracle_reach_check_uses_the_cells_own_arm():
         np.testing.assert_allclose(tip, [x, y, spec.floor_z + EnvConfig().grasp.ready_height], atol=reach.tol_p)
         assert axis @ down > np.cos(reach.tol_a)
         assert reach.confirms(line, down, ready) and not reach.confirms(far, down, ready)
+        assert reach.lifts(line[0], down, float(line[-1, 2]), ready)  # the cell's lift rule, from the floor up
+        assert not reach.lifts(far[0], down, 0.5, ready)
     finally:
         reach.close()
 
@@ -233,7 +235,7 @@ def test_oracle_confirms_a_refused_pick_with_the_cells_ik_then_tries_the_other_p
     """Candidates 0-2 lie on parcel 0, 3 and 4 on parcel 1, 5 on parcel 2; the fast check sees 3 of them. The
     first it reaches is proposed; where it reaches none, the cell's IK confirms the first (a miss of the fast
     check); where that refuses too, the best candidate of each other parcel is tried (3, not 4); where nothing
-    is reached, the ranking stands."""
+    is reached, the ranking stands. A candidate whose lift the cell's own rule cannot solve counts as unreached."""
     from policies.oracle import OracleConfig
 
     policy = OraclePolicy(OracleConfig(reach_checks=3, confirm_checks=1))
@@ -248,8 +250,10 @@ def test_oracle_confirms_a_refused_pick_with_the_cells_ik_then_tries_the_other_p
     monkeypatch.setattr(policy.reach, "ready_pose", lambda centre, floor_z: None)
     truth = types.SimpleNamespace(bin_centre=np.zeros(2), floor_z=0.0)
 
-    def rank(fast: set[int], exact: set[int]) -> list[int]:
+    def rank(fast: set[int], exact: set[int], stuck: frozenset[int] = frozenset()) -> list[int]:
         monkeypatch.setattr(policy.reach, "reaches", lambda line, axis: int(line[0, 0]) in fast)
+        monkeypatch.setattr(policy.reach, "lifts", lambda point, axis, top, ready: top == 1.0 and
+                            int(point[0]) not in stuck)
         monkeypatch.setattr(policy.reach, "confirms", lambda line, axis, ready: line[0, 2] == 1.0 and
                             int(line[0, 0]) in exact)
         return policy._reachable_first(order, points, normals, owner, truth).tolist()
@@ -259,6 +263,8 @@ def test_oracle_confirms_a_refused_pick_with_the_cells_ik_then_tries_the_other_p
     assert rank({3, 4, 5}, set()) == [3, 4, 5, 0, 1, 2]  # refused by both: parcel 1's best candidate
     assert rank({4, 5}, set()) == [5, 4, 0, 1, 2, 3]  # parcel 1's best refused too: parcel 2's
     assert rank(set(), set()) == [0, 1, 2, 3, 4, 5]  # nothing within reach: the ranking stands
+    assert rank({1, 2}, set(), frozenset({1})) == [2, 3, 4, 5, 0, 1]  # 1 is reached but cannot be lifted
+    assert rank(set(), {0}, frozenset({0})) == [0, 1, 2, 3, 4, 5]  # confirmed, but its lift does not solve
 
 
 def carton_and_tray(carton: trimesh.Trimesh, rim_height: float):

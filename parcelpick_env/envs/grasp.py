@@ -38,7 +38,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from parcelpick_env.envs.config import GraspConfig
-from parcelpick_env.robot.arm import MAX_IK_JUMP, Contact, Gen3Arm
+from parcelpick_env.robot.arm import LINE_STEP, MAX_IK_JUMP, Contact, Gen3Arm
 from parcelpick_env.robot.planning import Attachment
 from parcelpick_env.robot.timing import Trajectory, concatenate, hold_trajectory, joint_trajectory, path_trajectory
 from parcelpick_env.scene.scene import ParcelState, Scene
@@ -58,8 +58,6 @@ OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", 
 MOVES: tuple[str, ...] = ("plan", "hover", "descend", "approach", "seal", "lift", "transport", "release",
                           "retreat")
 HOVER_RISE = 1e-3  # m: a hover less than this above the pre-grasp point is the pre-grasp point (no descent)
-FINE_STEPS = 4  # a line whose IK jumps is solved again this many times finer (``_line``)
-LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump branches near the drop zone)
 LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
 SIDEWAYS_NORMAL_Z = 0.5  # a contact whose normal is within 60 deg of horizontal presses sideways (else bears or loads)
 # the break-away leaves every sideways contact at least this cosine (80 deg) off its normal, or is not made
@@ -303,20 +301,7 @@ class PickExecutor:
     def _line_path(self, q0: np.ndarray, end: np.ndarray, axis: np.ndarray, x_axis: np.ndarray | None = None,
                    step: float = LINE_STEP) -> tuple[np.ndarray | None, str | None]:
         """Joint waypoints of ``_line`` (``q0`` first), untimed: (path, None) or (None, why)."""
-        q0 = np.asarray(q0, dtype=np.float64)
-        start = self.kin.forward(q0)[0]
-        # A joint change above MAX_IK_JUMP between neighbours is a branch switch, or a fast but continuous turn
-        # near a singular pose: a continuous one shrinks with the step (kept, FINE_STEPS times finer), a switch not.
-        for k, limit in ((1, MAX_IK_JUMP), (FINE_STEPS, MAX_IK_JUMP / 2)):
-            n = max(1, math.ceil(float(np.linalg.norm(end - start)) * k / step))
-            qs = self.arm.cartesian_path(q0, start + (end - start) * (np.arange(1, n + 1)[:, None] / n), axis, x_axis)
-            if qs is None:
-                return None, "ik failed along the line"
-            path = np.vstack([q0[None], np.asarray(qs)])
-            jump = float(np.abs(np.diff(path, axis=0)).max())
-            if jump <= limit:
-                return path, None
-        return None, f"ik jumped {jump:.2f} rad between neighbouring points"
+        return self.arm.line_path(q0, end, axis, x_axis, step)
 
     def _line_collision(self, traj: Trajectory, attached: Attachment | None = None):
         """The first collision (planner's margin) at the samples of a Cartesian line, taken every

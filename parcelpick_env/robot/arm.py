@@ -36,6 +36,8 @@ from parcelpick_env.robot.timing import (GEN3_LIMITS, JointLimits, Trajectory, c
 CARTESIAN_STEP = 0.02  # m between IK points on Cartesian lines timed by path_trajectory
 PATH_IK_TOLERANCE = 0.01  # of the IK tolerances: points on a Cartesian path converge to 0.04 mm
 MAX_IK_JUMP = 0.25  # rad: a larger joint change between neighbouring IK points is a branch switch
+LINE_STEP = 0.015  # m between IK points of a Cartesian line (3 cm lets IK jump branches near the drop zone)
+FINE_STEPS = 4  # a line whose IK jumps is solved again this many times finer (``line_path``)
 
 
 @dataclass(frozen=True)
@@ -320,6 +322,27 @@ class Gen3Arm:
             q = fine
             path.append(q)
         return path
+
+    def line_path(self, q0: np.ndarray, end: np.ndarray, axis: np.ndarray, x_axis: np.ndarray | None = None,
+                  step: float = LINE_STEP) -> tuple[np.ndarray | None, str | None]:
+        """Joint waypoints (``q0`` first) of the tip on a straight line from its place at ``q0`` to ``end``, the
+        tool on ``axis`` (and yaw ``x_axis``), IK every ``step``: (path, None), or (None, why) where IK fails
+        or jumps branches. The rule every carrying and approach line of the cell obeys (``envs/grasp.py``), and
+        the one the oracle checks a lift with."""
+        q0 = np.asarray(q0, dtype=np.float64)
+        start = self.kin.forward(q0)[0]
+        # A joint change above MAX_IK_JUMP between neighbours is a branch switch, or a fast but continuous turn
+        # near a singular pose: a continuous one shrinks with the step (kept, FINE_STEPS times finer), a switch not.
+        for k, limit in ((1, MAX_IK_JUMP), (FINE_STEPS, MAX_IK_JUMP / 2)):
+            n = max(1, math.ceil(float(np.linalg.norm(end - start)) * k / step))
+            qs = self.cartesian_path(q0, start + (end - start) * (np.arange(1, n + 1)[:, None] / n), axis, x_axis)
+            if qs is None:
+                return None, "ik failed along the line"
+            path = np.vstack([q0[None], np.asarray(qs)])
+            jump = float(np.abs(np.diff(path, axis=0)).max())
+            if jump <= limit:
+                return path, None
+        return None, f"ik jumped {jump:.2f} rad between neighbouring points"
 
     def cartesian_trajectory(self, start_q: np.ndarray, points: Sequence[Sequence[float]], axis: Sequence[float],
                              dt: float, speed_scale: float = 1.0, x_axis: Sequence[float] | None = None,
