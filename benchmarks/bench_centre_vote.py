@@ -1,9 +1,10 @@
 """What centre votes add to a Diffusion-Suction prediction: the shipped ``diffusion`` and ``diffusion_vote`` policies
 on the same clouds, and the votes alone (head, clustering, wrench). Prints a markdown table.
 
-    .venv/bin/python benchmarks/bench_centre_vote.py [--threads 2] [--points 4096 16384] [--repeats 5]
+    .venv/bin/python benchmarks/bench_centre_vote.py [--threads 2] [--points 4096 16384] [--repeats 5] [--data DIR]
 
-The clouds are synthetic piles (``policies.diffusion.synthetic``), so the figures do not depend on a dataset.
+The clouds are synthetic piles (``policies.diffusion.synthetic``), so the figures do not depend on a dataset; with
+``--data``, also the first stored scene's cloud (a real pile, whose votes crowd less than a synthetic one's).
 """
 
 from __future__ import annotations
@@ -40,17 +41,24 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--points", type=int, nargs="+", default=[4096, 16384])
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--data", help="also time the first scene of this dataset directory")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     base = DiffusionSuctionPolicy(record_trajectory=False)
     vote = DiffusionCentreVotePolicy(record_trajectory=False)
     print("| input points | diffusion predict (ms) | diffusion_vote predict (ms) | votes alone (ms) |")
     print("|---|---|---|---|")
-    for n in args.points:
-        scene = synthetic_scene(np.random.default_rng(0), n)
-        obs = {"points": scene["points"], "normals": scene["normals"]}
-        points = scene["points"][: base.config.num_points]
-        normals = scene["normals"][: base.config.num_points]
+    clouds = [(f"{n} (synthetic)", synthetic_scene(np.random.default_rng(0), n)) for n in args.points]
+    if args.data:
+        from dataset.storage import open_dataset
+
+        store = open_dataset(args.data)
+        record = store.scene(0, ("points", "normals"))
+        store.close()
+        clouds.append((f"{len(record['points'])} ({args.data}, scene 0)", record))
+    for name, scene in clouds:
+        obs = {"points": np.asarray(scene["points"], np.float32), "normals": np.asarray(scene["normals"], np.float32)}
+        points, normals = obs["points"][: base.config.num_points], obs["normals"][: base.config.num_points]
         features = base.encode_cloud(points, normals)[0]
         head = vote.centre_head
 
@@ -62,7 +70,7 @@ def main() -> None:
 
         row = [median_ms(lambda: base.predict(obs), args.repeats), median_ms(lambda: vote.predict(obs), args.repeats),
                median_ms(votes_alone, args.repeats)]
-        print(f"| {n} | " + " | ".join(f"{v:.1f}" for v in row) + " |")
+        print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in row) + " |")
 
 
 if __name__ == "__main__":
