@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dataset.scene_record import scene_from_record
+from dataset.scene_record import require_keys, scene_from_record
 from dataset.storage import open_dataset
 from parcelpick_env.cli import UsageError, check_input_dir, check_input_file, check_output_path, run_cli
 from parcelpick_env.config_checks import require_positive_ints, require_positive_numbers
@@ -72,6 +72,7 @@ def collect(data: Path, policy: DiffusionSuctionPolicy, scenes: int | None, prog
         total = len(store) if scenes is None else min(scenes, len(store))
         for i in tqdm(range(total), desc=f"features {data}", disable=not progress, file=sys.stderr):
             record = store.scene(i)
+            require_keys(record, ("points", "normals", "object_ids"), f"{data}: scene {i}")
             points = np.asarray(record["points"], dtype=np.float32)
             normals = np.asarray(record["normals"], dtype=np.float32)
             offsets, on_parcel = vote_targets(record, points, np.asarray(record["object_ids"], dtype=np.int64))
