@@ -5,7 +5,7 @@ from the cup to the parcel's centre, which a partial view does not show. Scored 
 the shipped model's own seal and collision channels reach a Top-50 AP of 78.0 on the test split (the label oracle:
 76.2), against 51.2 with its wrench channel; the centroid of a parcel's visible points scores 36.6, the centroid of
 its smooth surface segment 40.1 (docs/training.md, 'Centre votes'). So a small head votes, per point, for the
-centre from the frozen encoder's features (VoteNet's idea); each vote is averaged with the votes within
+centre from the frozen encoder's features (VoteNet's idea); each vote is averaged with its nearest votes within
 ``cluster_radius`` of it, and SuctionNet's wrench formula (``wrench_scores``) about that centre re-weights the
 model's score. The head reads only the observation's features: no ground truth at inference.
 """

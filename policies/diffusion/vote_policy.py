@@ -17,7 +17,7 @@ from policies.diffusion.policy import DiffusionSuctionPolicy
 
 class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
     """``DiffusionSuctionPolicy`` whose ranking score is its channels' product times the wrench score about each
-    point's voted centre (votes averaged within the head's ``cluster_radius``)."""
+    point's voted centre (each vote averaged with its ``cluster_neighbours`` nearest within ``cluster_radius``)."""
 
     name = "diffusion_vote"
 
