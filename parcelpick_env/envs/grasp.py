@@ -281,12 +281,12 @@ class PickExecutor:
               max_accel: float | None = None, x_axis: np.ndarray | None = None, step: float = LINE_STEP
               ) -> tuple[Trajectory | None, str | None]:
         """The tip on a straight line from its place at ``q0`` to ``end`` with the tool on ``axis`` (and
-        yaw ``x_axis``): IK every ``step`` (``Gen3Arm.cartesian_path``), then ``path_trajectory`` within
+        yaw ``x_axis``): IK every ``step`` (``Gen3Arm.line_path``), then ``path_trajectory`` within
         the Gen3's joint limits, slowed uniformly in time until the tip's peak speed is within
         ``max_speed`` and its peak acceleration within ``max_accel`` (speed scales with the slow-down
         s, acceleration with s^2). (trajectory, None) or (None, why)."""
         arm = self.arm
-        path, why = self._line_path(q0, end, axis, x_axis, step)
+        path, why = arm.line_path(q0, end, axis, x_axis, step)
         if path is None:
             return None, why
         traj = path_trajectory(path, arm.limits, dt)
@@ -297,11 +297,6 @@ class PickExecutor:
         if max_accel is not None and a > max_accel:
             scale = min(scale, math.sqrt(max_accel / a))
         return (traj if scale >= 1.0 else path_trajectory(path, arm.limits, dt, 0.98 * scale)), None
-
-    def _line_path(self, q0: np.ndarray, end: np.ndarray, axis: np.ndarray, x_axis: np.ndarray | None = None,
-                   step: float = LINE_STEP) -> tuple[np.ndarray | None, str | None]:
-        """Joint waypoints of ``_line`` (``q0`` first), untimed: (path, None) or (None, why)."""
-        return self.arm.line_path(q0, end, axis, x_axis, step)
 
     def _line_collision(self, traj: Trajectory, attached: Attachment | None = None):
         """The first collision (planner's margin) at the samples of a Cartesian line, taken every
@@ -414,7 +409,7 @@ class PickExecutor:
         if q_contact is None:
             return True  # the approach reaches the overshoot point; the lift's own IK decides
         top = self._lift_height(scene, hits[0][0], float(pick.point[2]))
-        path, _ = self._line_path(q_contact, np.array([pick.point[0], pick.point[1], top]), pick.axis)
+        path, _ = self.arm.line_path(q_contact, np.array([pick.point[0], pick.point[1], top]), pick.axis)
         return path is not None
 
     def _plan_branch(self, scene: Scene, point: np.ndarray, normal: np.ndarray, seed: np.ndarray

@@ -86,8 +86,8 @@ class CentreVoteHead(nn.Module):
             width = hidden
         layers.append(nn.Linear(width, 3))
         self.mlp = nn.Sequential(*layers)
-        self.register_buffer("input_mean", torch.zeros(width_of(self.in_features)))
-        self.register_buffer("input_std", torch.ones(width_of(self.in_features)))
+        self.register_buffer("input_mean", torch.zeros(self.in_features + 3))
+        self.register_buffer("input_std", torch.ones(self.in_features + 3))
 
     def set_standardisation(self, inputs: torch.Tensor) -> None:
         """Standardise with the mean and spread of ``inputs`` (M, in_features + 3), as ``inputs_of`` makes them."""
@@ -101,10 +101,6 @@ class CentreVoteHead(nn.Module):
     def forward(self, features: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
         """(..., 3) offsets in metres for per-point ``features`` (..., F) and unit ``normals`` (..., 3)."""
         return self.forward_units(inputs_of(features, normals, self.in_features)) * LEVER_UNIT
-
-
-def width_of(in_features: int) -> int:
-    return in_features + 3
 
 
 def inputs_of(features: torch.Tensor, normals: torch.Tensor, in_features: int) -> torch.Tensor:

@@ -24,7 +24,7 @@ from torch import nn
 from dataset.scene_record import require_keys, scene_from_record
 from dataset.storage import open_dataset
 from parcelpick_env.cli import UsageError, check_input_dir, check_input_file, check_output_path, run_cli
-from parcelpick_env.config_checks import require_positive_ints, require_positive_numbers
+from parcelpick_env.config_checks import require, require_positive_ints, require_positive_numbers
 from parcelpick_env.suction.geometry import surface_centroid
 from policies.diffusion.centre_vote import (CentreVoteConfig, CentreVoteHead, file_sha256, inputs_of,
                                             save_centre_vote)
@@ -47,8 +47,7 @@ class CentreVoteTraining:
     def __post_init__(self) -> None:
         require_positive_ints(self, ("steps", "batch_points"))
         require_positive_numbers(self, ("lr", "beta"))
-        if not self.weight_decay >= 0:
-            raise ValueError(f"CentreVoteTraining: weight_decay must be >= 0, got {self.weight_decay!r}")
+        require(self.weight_decay >= 0, type(self).__name__, f"weight_decay must be >= 0, got {self.weight_decay!r}")
 
 
 def vote_targets(record: dict, points: np.ndarray, object_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -92,7 +91,6 @@ def fit(head: CentreVoteHead, inputs: torch.Tensor, targets: torch.Tensor, train
     if len(inputs) == 0:
         raise ValueError("no parcel points to learn centre votes from")
     generator = torch.Generator().manual_seed(seed)
-    torch.manual_seed(seed)
     head.set_standardisation(inputs)
     head.train()
     optimiser = torch.optim.AdamW(head.parameters(), training.lr, weight_decay=training.weight_decay)
