@@ -61,14 +61,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 import open3d as o3d
-import pybullet as pb
 import trimesh
 from scipy.spatial.transform import Rotation
 
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
-from parcelpick_env.robot.arm import ArmConfig, Gen3Arm
+from parcelpick_env.farthest_points import farthest_point_indices
+from parcelpick_env.robot.arm import ArmConfig
 from parcelpick_env.robot.gen3 import JOINTS, SuctionToolSpec
 from parcelpick_env.robot.kinematics import Gen3Kinematics
 from parcelpick_env.suction.config import SuctionConfig
@@ -78,6 +78,7 @@ from parcelpick_env.suction.physical import PhysicalGrasp
 from parcelpick_env.suction.scorer import SuctionScorer, SuctionScores
 from parcelpick_env.suction.wrench import wrench_scores
 from policies.base import Candidates, Policy
+from policies.cell_twin import CellTwin
 
 STATE_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion", "parcel_com",
                                "parcel_mass", "parcel_asset_index", "parcel_extents", "bin")
@@ -122,6 +123,12 @@ class OracleConfig:
     # where all of those fail, this many of the first are checked again by the cell's own IK (slow, exact), and
     # if it refuses them too, the best candidate of each other parcel is checked in rank order (``_reachable_first``)
     confirm_checks: int = 2
+    # and where every check above refuses, this many candidates spread over the approaches offered (farthest
+    # points of each candidate's point moved ``spread_reach`` out along its normal) are asked of the cell's plan,
+    # the first it accepts going first: the last parcel of a mixed stacked pile, a thin mailer on edge, offered
+    # a hover clear of the tote's wall to 3 of about 240 of its 963 candidates, all far down its ranking
+    spread_checks: int = 48
+    spread_reach: float = 0.10  # m
     reach_step: float = 0.05  # m between IK checks along the lift line
 
     def __post_init__(self) -> None:
@@ -136,9 +143,10 @@ class OracleConfig:
         if not 0.0 <= self.max_face_tilt_deg <= self.last_resort_face_tilt_deg <= 90.0:
             raise ValueError(f"OracleConfig needs 0 <= max_face_tilt_deg <= last_resort_face_tilt_deg <= 90, got "
                              f"{self.max_face_tilt_deg!r}, {self.last_resort_face_tilt_deg!r}")
-        if self.reach_checks < 1 or self.confirm_checks < 0:
-            raise ValueError(f"OracleConfig needs reach_checks >= 1 and confirm_checks >= 0, got {self.reach_checks!r}, "
-                             f"{self.confirm_checks!r}")
+        if self.reach_checks < 1 or self.confirm_checks < 0 or self.spread_checks < 0 or not self.spread_reach >= 0:
+            raise ValueError(f"OracleConfig needs reach_checks >= 1, confirm_checks >= 0, spread_checks >= 0 and "
+                             f"spread_reach >= 0, got {self.reach_checks!r}, {self.confirm_checks!r}, "
+                             f"{self.spread_checks!r}, {self.spread_reach!r}")
         if not 0.0 <= self.seal_floor <= self.min_seal <= 1.0:
             raise ValueError(f"OracleConfig needs 0 <= seal_floor <= min_seal <= 1, got {self.seal_floor!r}, "
                              f"{self.min_seal!r}")
@@ -391,31 +399,20 @@ def best_labelled(obs: Mapping[str, Any], top_k: int) -> Candidates:
 
 
 class ArmReach:
-    """Whether the cell's arm reaches a pick, two ways.
+    """Whether the cell's arm reaches a pick, fast: the arm's own numpy kinematics (``Gen3Kinematics.refine``,
+    the same damped least squares the env's IK refines with) at the mount, joint limits and IK tolerances of
+    ``ArmConfig``, chained along the pick from the contact up to the carrying height and over to the drop zone
+    (every ``step``), tool on the approach axis. A local solve from the Kinova home: it misses reachable poses
+    (on the Table V grid, 10 decisions found none of their 40 checked candidates reachable, and the cell made
+    the first one every time), so the oracle then asks the cell's own plan on its twin (``CellTwin``)."""
 
-    ``reaches``: the arm's own numpy kinematics (``Gen3Kinematics.refine``, the same damped least squares the
-    env's IK refines with) at the mount, joint limits and IK tolerances of ``ArmConfig``, chained along the pick
-    from the contact up to the carrying height (every ``step``), tool on the approach axis. Fast, and a local
-    solve from the Kinova home: it misses reachable poses (on the Table V grid, 10 decisions found none of
-    their 40 checked candidates reachable, and the cell made the first one every time).
-
-    ``confirms``: the env's own solver (``Gen3Arm.ik``: pybullet's null-space guesses at several cup yaws,
-    refined, then the Kinova home; ``cartesian_path`` along the line) on a copy of the arm alone in a private
-    pybullet DIRECT client (no scene: kinematics only), first seeded at the env's ready pose above the bin
-    centre, as the env's plan is. About 0.3 s a check against 30 ms, so it only confirms a refusal.
-    """
-
-    def __init__(self, arm: ArmConfig | None = None, tool: SuctionToolSpec = SuctionToolSpec(),
-                 ready_height: float = EnvConfig().grasp.ready_height) -> None:
+    def __init__(self, arm: ArmConfig | None = None, tool: SuctionToolSpec = SuctionToolSpec()) -> None:
         self.config = arm or ArmConfig()
         self.kin = Gen3Kinematics(self.config.base_position, self.config.base_yaw, tool.length)
         self.lower = np.array([j[4] for j in JOINTS])
         self.upper = np.array([j[5] for j in JOINTS])
         self.seed = np.asarray(self.config.ik_seed, dtype=np.float64)
         self.tol_p, self.tol_a = self.config.ik_position_tol, self.config.ik_angle_tol
-        self.ready_height = float(ready_height)
-        self._arm: Gen3Arm | None = None  # the env's solver, made on first use
-        self._ready: dict[tuple[float, float, float], np.ndarray | None] = {}
 
     def reaches(self, points: np.ndarray, axis: np.ndarray) -> bool:
         """Every point in turn (seeded by the previous answer), the tool axis along ``axis``."""
@@ -426,55 +423,6 @@ class ArmReach:
             if q is None:
                 return False
         return True
-
-    def _solver(self) -> Gen3Arm:
-        if self._arm is None:
-            self._arm = Gen3Arm(pb.connect(pb.DIRECT), self.config)
-        return self._arm
-
-    def ready_pose(self, bin_centre: np.ndarray, floor_z: float) -> np.ndarray | None:
-        """The env's ready pose: the cup straight down ``ready_height`` above the bin centre, from the Kinova home."""
-        key = (float(bin_centre[0]), float(bin_centre[1]), float(floor_z))
-        if key not in self._ready:
-            self._ready[key] = self._solver().ik(np.array([key[0], key[1], key[2] + self.ready_height]),
-                                                 np.array([0.0, 0.0, -1.0]), seed=self.seed)
-        return self._ready[key]
-
-    def confirms(self, points: np.ndarray, axis: np.ndarray, ready: np.ndarray | None) -> bool:
-        """The env's solver along ``points`` (the first from ``ready``, then from the Kinova home)."""
-        arm, points = self._solver(), np.asarray(points, dtype=np.float64)
-        for seed in (ready, self.seed):
-            q = None if seed is None else arm.ik(points[0], axis, seed=seed)
-            if q is not None and (len(points) == 1 or arm.cartesian_path(q, points[1:], axis) is not None):
-                return True
-        return False
-
-    def lifts(self, point: np.ndarray, axis: np.ndarray, top: float, ready: np.ndarray | None) -> bool:
-        """Whether the cell's straight lift from the contact ``point`` to height ``top`` solves by its own rule
-        (``Gen3Arm.line_path``: IK every 1.5 cm, no branch jump, yaw free) on either IK branch its plan may take
-        (``PickExecutor._plan``: the one nearest the ready pose, else the Kinova home's). A pick on a tilted face
-        can come down on a branch whose wrist reaches its limit part-way up: the cell then has the parcel on the
-        cup and cannot raise it (the report's `unreachable: lift, ik jumped 1 rad`)."""
-        arm, point = self._solver(), np.asarray(point, dtype=np.float64)
-        end = np.array([point[0], point[1], top])
-        for seed in (ready, self.seed):
-            q = None if seed is None else arm.ik(point, axis, seed=seed)
-            if q is not None and arm.line_path(q, end, axis)[0] is not None:
-                return True
-        return False
-
-    def close(self) -> None:
-        if self._arm is not None:
-            if pb.isConnected(self._arm.client):
-                pb.disconnect(self._arm.client)
-            self._arm = None
-            self._ready.clear()
-
-    def __del__(self) -> None:  # best effort; the client is private to this object
-        try:
-            self.close()
-        except Exception:  # noqa: BLE001 - interpreter shutdown
-            pass
 
 
 class OraclePolicy(Policy):
@@ -499,6 +447,7 @@ class OraclePolicy(Policy):
         self.cup: CupSpec = defaults.grasp.cup  # the cell's vacuum and lip (docs/cell.md)
         self.grasp = defaults.grasp  # the cell's pick geometry: pre-grasp distance, carrying clearance
         self.reach = ArmReach(defaults.arm)
+        self.twin = CellTwin(defaults)  # the cell's own plan, on a copy of the tote, arm and pile
         self.load_target = defaults.grasp.carry_load_target  # a sound pick hangs within the carry's load share
         self.last_scores: SuctionScores | None = None
         self.last_ratios: np.ndarray | None = None  # (K, 6) predicted ring ratios at rest of the returned picks
@@ -543,6 +492,7 @@ class OraclePolicy(Policy):
         if all(key in obs for key in LABEL_KEYS):
             return best_labelled(obs, top_k)
         truth = ground_truth(obs, library)
+        self.twin.sync(obs, library)
         points, normals, owner = uncovered_top_points(truth, self._offsets, suction.num_threads)
         scorer = truth_scorer(truth, suction)
         grasp = scorer.physical(points, normals, owner, self.cup)
@@ -605,21 +555,22 @@ class OraclePolicy(Policy):
         worst = np.nan_to_num(grasp.worst[free], nan=np.inf)
         return free[np.lexsort((worst, grasp.seal[free] < self.config.seal_floor, repeated))]
 
-    def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth,
-                   transport: bool = True) -> np.ndarray:
-        """Tip positions the pick passes: pre-grasp, contact, straight up to the carrying height (the env's
-        rule: the held parcel's underside ``clearance`` above the rim and the rest of the pile), then (with
-        ``transport``) over to the drop zone."""
+    def _carry_height(self, point: np.ndarray, parcel: int, truth: GroundTruth) -> float:
+        """The tip's carrying height (the env's rule: the held parcel's underside ``clearance`` above the rim
+        and the rest of the pile, at least ``min_lift`` up)."""
         g = self.grasp
         others = [m.bounds[1, 2] for k, m in enumerate(truth.meshes) if k != parcel]
-        rim = float(truth.obstacles_top)
-        carry = max([rim, *others]) + g.clearance + (point[2] - truth.meshes[parcel].bounds[0, 2])
-        carry = max(carry, point[2] + g.min_lift)
+        carry = max([float(truth.obstacles_top), *others]) + g.clearance + (point[2] - truth.meshes[parcel].bounds[0, 2])
+        return float(max(carry, point[2] + g.min_lift))
+
+    def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth) -> np.ndarray:
+        """Tip positions the pick passes: pre-grasp, contact, straight up to the carrying height
+        (``_carry_height``), then over to the drop zone."""
+        g = self.grasp
+        carry = self._carry_height(point, parcel, truth)
         heights = np.arange(point[2], carry, self.config.reach_step)[1:]
         up = np.column_stack([np.full(len(heights) + 1, point[0]), np.full(len(heights) + 1, point[1]),
                               np.append(heights, carry)])
-        if not transport:
-            return np.vstack([point + g.pregrasp_distance * normal, point, up])
         # then over to the drop zone at that height, tool still on the approach axis (a tilted pick is
         # carried tilted; the env's detour round the base is not modelled, so this may only demote a pick)
         drop = np.array([g.drop_zone[0], g.drop_zone[1], max(g.drop_zone[2], carry)])
@@ -629,49 +580,59 @@ class OraclePolicy(Policy):
 
     def _reachable_first(self, order: np.ndarray, points: np.ndarray, normals: np.ndarray, owner: np.ndarray,
                          truth: GroundTruth) -> np.ndarray:
-        """The ranked candidates with the first one the arm reaches moved to the front, and those found
+        """The ranked candidates with the first one the cell can do moved to the front, and those found
         unreachable moved to the back.
 
-        First the fast check (``ArmReach.reaches``) on at most ``reach_checks`` in rank order. Where it refuses
-        them all, the cell's own IK (``ArmReach.confirms``) checks the first ``confirm_checks`` again, up to the
-        carrying height only: the fast check misses poses the cell reaches, and holds a tilted pick's axis over
-        to the drop zone, where the cell turns the tool down (the Table V grid's 10 such decisions were all
-        successes, 4 of them picks tilted 31-55 deg whose tilted transport no IK solves). Where that refuses
-        too, the best candidate of each parcel not yet checked, in rank order (the first checks usually cover
-        one parcel: its many probes near the centre of mass); proposing a pick known to be out of reach ended
-        heap episodes on three `hover: ik` misses in a row. If nothing is found, the ranking stands."""
+        A pick passes where the fast check (``ArmReach.reaches``, along the whole pick to the drop zone) and
+        the cell's own plan on its twin (``CellTwin.refusal``: hover, descent, approach and lift, on the IK
+        branch the cell would take; and ``CellTwin.lifts``, the lift by the cell's line rule) both accept it; at most ``reach_checks`` in rank order. Where none does, the
+        first ``confirm_checks`` are asked of the cell's plan alone: the fast check misses poses the cell
+        reaches, and holds a tilted pick's axis over to the drop zone, where the cell turns the tool down (the
+        Table V grid's 10 such decisions were all successes, 4 of them picks tilted 31-55 deg whose tilted
+        transport no IK solves). Where that refuses too, the best candidate of each parcel not yet checked, in
+        rank order (the first checks usually cover one parcel: its many probes near the centre of mass), and
+        then ``spread_checks`` candidates spread over the approaches offered, by the cell's plan alone (the last
+        parcel of a pile may offer a reachable approach only far down the ranking). If nothing is found, the
+        ranking stands."""
         c = self.config
 
-        def line(i: int, transport: bool = True) -> np.ndarray:
-            return self._pick_line(points[i], normals[i], int(owner[i]), truth, transport)
+        def line(i: int) -> np.ndarray:
+            return self._pick_line(points[i], normals[i], int(owner[i]), truth)
+
+        def planned(i: int) -> bool:
+            return (self.twin.lifts(points[i], normals[i], self._carry_height(points[i], int(owner[i]), truth))
+                    and self.twin.refusal(points[i], normals[i]) is None)
 
         def first(i: int, refused: Sequence[int]) -> np.ndarray:
+            refused = [j for j in refused if j != i]
             rest = order[(order != i) & ~np.isin(order, refused)]
             return np.concatenate([[i], rest, np.asarray(refused, dtype=order.dtype)])
 
-        ready = self.reach.ready_pose(truth.bin_centre, truth.floor_z) if len(order) else None
-
-        def lifted(i: int) -> bool:  # the cell's own lift rule, up to the carrying height
-            return self.reach.lifts(points[i], -normals[i], float(line(i, transport=False)[-1, 2]), ready)
-
         checked = [int(i) for i in order[:c.reach_checks]]
-        unreachable = []
+        unreachable: list[int] = []
         for i in checked:
-            if self.reach.reaches(line(i), -normals[i]) and lifted(i):
+            if self.reach.reaches(line(i), -normals[i]) and planned(i):
                 return first(i, unreachable)
             unreachable.append(i)
         if not checked:
             return order
         for i in checked[:c.confirm_checks]:
-            if self.reach.confirms(line(i, transport=False), -normals[i], ready) and lifted(i):
-                return first(i, [j for j in unreachable if j != i])
+            if planned(i):
+                return first(i, unreachable)
         _, best = np.unique(owner[order], return_index=True)  # each parcel's best-ranked candidate
         seen = set(owner[checked].tolist())
         others = [int(i) for i in order[np.sort(best)] if int(owner[i]) not in seen]
         for i in others[:c.reach_checks]:
-            if self.reach.reaches(line(i), -normals[i]) and lifted(i):
+            if self.reach.reaches(line(i), -normals[i]) and planned(i):
                 return first(i, unreachable)
             unreachable.append(i)
+        # approaches spread in place and direction: farthest points of each candidate's point moved out along
+        # its normal (the pre-grasp side), so every face and tilt offered is asked, best-ranked first
+        approach = points[order] + c.spread_reach * normals[order]
+        spread = farthest_point_indices(approach, min(c.spread_checks, len(order))) if c.spread_checks else []
+        for i in (int(j) for j in order[spread] if int(j) not in checked[:c.confirm_checks]):
+            if planned(i):
+                return first(i, unreachable)
         return order
 
     @staticmethod

@@ -3,7 +3,6 @@ of mass, and a ceiling that delivers what a perfect perception stack would."""
 
 from __future__ import annotations
 
-import types
 
 import numpy as np
 import pytest
@@ -204,67 +203,55 @@ def test_oracle_sees_a_parcel_on_the_far_end_of_a_long_one_and_one_hanging_over_
 
 
 def test_oracle_reach_check_uses_the_cells_own_arm():
-    """Both checks reach the tote centre top-down from the floor to the carrying height, and not a point 1.5 m
-    from the base; the tool tip the numpy check solves for is where the arm's forward kinematics puts it, and
-    the env's solver's ready pose is the env's own (the cup straight down ``ready_height`` above the bin centre)."""
+    """The fast check reaches the tote centre top-down from the floor to the carrying height, and not a point
+    1.5 m from the base; the tool tip it solves for is where the arm's forward kinematics puts it."""
     from policies.oracle import ArmReach
 
     reach, spec = ArmReach(), BinSpec()
-    try:
-        x, y = spec.center_xy
-        line = np.array([[x, y, spec.floor_z + z] for z in (0.05, 0.2, 0.45)])
-        down = np.array([0.0, 0.0, -1.0])
-        far = np.array([[1.5, 0.0, 0.3]])
-        assert reach.reaches(line, down)
-        assert not reach.reaches(far, down)
-        q = reach.kin.refine(reach.seed, line[1], down, reach.seed, reach.lower, reach.upper, reach.tol_p, reach.tol_a)
-        tip, axis = reach.kin.forward(q)[:2]
-        assert np.linalg.norm(tip - line[1]) < reach.tol_p and axis @ down > np.cos(reach.tol_a)
-        ready = reach.ready_pose(np.asarray(spec.center_xy), spec.floor_z)
-        tip, axis = reach.kin.forward(ready)[:2]
-        np.testing.assert_allclose(tip, [x, y, spec.floor_z + EnvConfig().grasp.ready_height], atol=reach.tol_p)
-        assert axis @ down > np.cos(reach.tol_a)
-        assert reach.confirms(line, down, ready) and not reach.confirms(far, down, ready)
-        assert reach.lifts(line[0], down, float(line[-1, 2]), ready)  # the cell's lift rule, from the floor up
-        assert not reach.lifts(far[0], down, 0.5, ready)
-    finally:
-        reach.close()
+    x, y = spec.center_xy
+    line = np.array([[x, y, spec.floor_z + z] for z in (0.05, 0.2, 0.45)])
+    down = np.array([0.0, 0.0, -1.0])
+    assert reach.reaches(line, down)
+    assert not reach.reaches(np.array([[1.5, 0.0, 0.3]]), down)
+    q = reach.kin.refine(reach.seed, line[1], down, reach.seed, reach.lower, reach.upper, reach.tol_p, reach.tol_a)
+    tip, axis = reach.kin.forward(q)[:2]
+    assert np.linalg.norm(tip - line[1]) < reach.tol_p and axis @ down > np.cos(reach.tol_a)
 
 
-def test_oracle_confirms_a_refused_pick_with_the_cells_ik_then_tries_the_other_parcels(monkeypatch):
-    """Candidates 0-2 lie on parcel 0, 3 and 4 on parcel 1, 5 on parcel 2; the fast check sees 3 of them. The
-    first it reaches is proposed; where it reaches none, the cell's IK confirms the first (a miss of the fast
-    check); where that refuses too, the best candidate of each other parcel is tried (3, not 4); where nothing
-    is reached, the ranking stands. A candidate whose lift the cell's own rule cannot solve counts as unreached."""
+def test_oracle_asks_the_cells_plan_where_the_fast_check_refuses_then_tries_the_other_parcels(monkeypatch):
+    """Candidates 0-2 lie on parcel 0, 3 and 4 on parcel 1, 5 on parcel 2; the fast check sees some of them, the
+    cell's plan on the twin others. The first both accept is proposed; where the fast check accepts none, the
+    cell's plan alone is asked of the first (a miss of the fast check); where that refuses too, the best
+    candidate of each other parcel is tried (3, not 4); then approaches spread over the offer (here the two
+    farthest apart: 0, already asked, and 5), by the plan alone; where nothing passes, the ranking stands. A pick
+    whose lift the cell's line rule cannot solve counts as refused by the plan."""
+    from parcelpick_env.envs.grasp import Failure
     from policies.oracle import OracleConfig
 
-    policy = OraclePolicy(OracleConfig(reach_checks=3, confirm_checks=1))
+    policy = OraclePolicy(OracleConfig(reach_checks=3, confirm_checks=1, spread_checks=2))
     owner = np.array([0, 0, 0, 1, 1, 2])
     points = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])  # the line of candidate i starts at x = i
     normals = np.tile([0.0, 0.0, 1.0], (6, 1))
     order = np.arange(6)
-    # z of the fake line marks a line without the transport: the cell's IK checks the pick up to the carrying
-    # height only (where a tilted transport does not solve, the cell turns the tool down)
-    monkeypatch.setattr(policy, "_pick_line", lambda point, normal, parcel, truth, transport=True:
-                        np.array([[point[0], 0.0, 0.0 if transport else 1.0]]))
-    monkeypatch.setattr(policy.reach, "ready_pose", lambda centre, floor_z: None)
-    truth = types.SimpleNamespace(bin_centre=np.zeros(2), floor_z=0.0)
+    monkeypatch.setattr(policy, "_pick_line", lambda point, normal, parcel, truth: np.array([[point[0], 0.0, 0.0]]))
+    monkeypatch.setattr(policy, "_carry_height", lambda point, parcel, truth: 0.5)
 
-    def rank(fast: set[int], exact: set[int], stuck: frozenset[int] = frozenset()) -> list[int]:
+    def rank(fast: set[int], plan: set[int], stuck: frozenset[int] = frozenset()) -> list[int]:
         monkeypatch.setattr(policy.reach, "reaches", lambda line, axis: int(line[0, 0]) in fast)
-        monkeypatch.setattr(policy.reach, "lifts", lambda point, axis, top, ready: top == 1.0 and
-                            int(point[0]) not in stuck)
-        monkeypatch.setattr(policy.reach, "confirms", lambda line, axis, ready: line[0, 2] == 1.0 and
-                            int(line[0, 0]) in exact)
-        return policy._reachable_first(order, points, normals, owner, truth).tolist()
+        monkeypatch.setattr(policy.twin, "refusal", lambda point, normal: None if int(point[0]) in plan
+                            else Failure("hover", condition="ik"))
+        monkeypatch.setattr(policy.twin, "lifts", lambda point, normal, top: top == 0.5 and int(point[0]) not in stuck)
+        return policy._reachable_first(order, points, normals, owner, truth=None).tolist()
 
-    assert rank({1, 4}, set()) == [1, 2, 3, 4, 5, 0]  # the first the fast check reaches; the refused one last
-    assert rank(set(), {0, 1}) == [0, 3, 4, 5, 1, 2]  # all refused: the cell's IK confirms the first
-    assert rank({3, 4, 5}, set()) == [3, 4, 5, 0, 1, 2]  # refused by both: parcel 1's best candidate
-    assert rank({4, 5}, set()) == [5, 4, 0, 1, 2, 3]  # parcel 1's best refused too: parcel 2's
-    assert rank(set(), set()) == [0, 1, 2, 3, 4, 5]  # nothing within reach: the ranking stands
-    assert rank({1, 2}, set(), frozenset({1})) == [2, 3, 4, 5, 0, 1]  # 1 is reached but cannot be lifted
-    assert rank(set(), {0}, frozenset({0})) == [0, 1, 2, 3, 4, 5]  # confirmed, but its lift does not solve
+    everything = set(range(6))
+    assert rank({1, 4}, everything) == [1, 2, 3, 4, 5, 0]  # the first both accept; the refused one last
+    assert rank({1, 2}, {2}) == [2, 3, 4, 5, 0, 1]  # 1 is within reach, but the cell's plan refuses it
+    assert rank({1, 2}, everything, frozenset({1})) == [2, 3, 4, 5, 0, 1]  # planned, but its lift does not solve
+    assert rank(set(), {0, 1}) == [0, 3, 4, 5, 1, 2]  # the fast check refuses all: the cell's plan takes the first
+    assert rank({3, 4, 5}, {3, 4, 5}) == [3, 4, 5, 0, 1, 2]  # the first refused by both: parcel 1's best candidate
+    assert rank({4, 5}, {3, 4, 5}) == [5, 4, 0, 1, 2, 3]  # parcel 1's best refused by the fast check: parcel 2's
+    assert rank(set(), {5}) == [5, 4, 0, 1, 2, 3]  # nothing else: the spread finds 5, accepted by the plan alone
+    assert rank(set(), {4}) == [0, 1, 2, 3, 4, 5]  # 4 is not among the spread: the ranking stands
 
 
 def carton_and_tray(carton: trimesh.Trimesh, rim_height: float):

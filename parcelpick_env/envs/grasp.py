@@ -376,6 +376,18 @@ class PickExecutor:
         self._retreat()
         return self._result("success", None, pick)
 
+    def refusal(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> Failure | None:
+        """Why the cell would refuse a pick before anything moves, or None where it would go ahead: its plan
+        (``_plan``: hover, descent and approach on the IK branch it takes, and the lift from there) and the
+        descent's check against the scene (``_descend``). The arm and the scene are left as they were (the
+        privileged oracle asks this of a twin of the cell, ``policies/cell_twin.py``)."""
+        self._reports = []
+        pick = self._plan(scene, np.asarray(point, dtype=np.float64), np.asarray(normal, dtype=np.float64))
+        if isinstance(pick, MoveReport):
+            return pick.failure
+        hit = None if pick.descend is None else self._line_collision(pick.descend)
+        return None if hit is None else Failure("descend", hit.link, body=hit.body)
+
     # ------------------------------------------------------------------------------------ moves
     def _plan(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> _Pick | MoveReport:
         """Hover, descent and approach on the IK branch nearest the ready pose; where that branch cannot
@@ -434,6 +446,8 @@ class PickExecutor:
             # above a heap the hover IK may find no answer, or a branch that cannot come straight down (it jumps
             # mid-line): solve at the pre-grasp point and climb the line instead, as high as the arm reaches
             climbed = self._climb(pre, hover, axis, seed)
+            if climbed is not None and self.planner.collision(climbed, margin=0.0) is not None:
+                climbed = None  # a climb that ends with a link inside the tote or the pile is no hover
             if climbed is not None:
                 if float(self.kin.forward(climbed)[0][2]) <= pre[2] + HOVER_RISE:  # no higher: hover at pre-grasp
                     pick.q_hover, high = climbed, False

@@ -1,0 +1,125 @@
+"""A kinematic twin of the pick cell, on which the privileged oracle asks the cell's own planner about a pick.
+
+The oracle's reach checks (``policies/oracle.py``, ``ArmReach``) are fast models of the arm alone. The cell
+also refuses picks for reasons those models cannot see: a wrist inside the tote's wall at every hover the IK
+finds, a descent that sweeps a link through a neighbour, a lift whose IK branch jumps. ``CellTwin`` builds the
+tote, the Gen3 and every parcel, each as the simulator collides it (``Simulator.add_parcel``: the asset's
+hull, the simulator's margin), in a private pybullet DIRECT client, posed from the privileged ``state_dict``
+observation, and asks ``PickExecutor.refusal`` there: the env's own plan, run on the same geometry, without
+dynamics. Nothing here is stepped; a refusal is the cell's own verdict before it moves, not a guess. What it
+cannot know: the dynamics after contact (seal, hold, a neighbour's drag), the free move from wherever the arm
+is (the env plans it at run time), and a custom scene's fixtures, which the ``state_dict`` does not carry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+import numpy as np
+
+from parcelpick_env.assets.library import AssetLibrary
+from parcelpick_env.envs.config import EnvConfig
+from parcelpick_env.envs.custom_scene import box_asset
+from parcelpick_env.envs.grasp import Failure, PickExecutor
+from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
+from parcelpick_env.robot.arm import Gen3Arm
+from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
+from parcelpick_env.sim.simulator import Simulator
+
+TWIN_FRICTION = 0.5  # no contact is ever resolved in the twin; add_parcel needs a value
+
+
+class CellTwin:
+    """The cell's tote, arm and parcels without dynamics, posed by ``sync``; ``refusal`` is the cell's plan."""
+
+    def __init__(self, config: EnvConfig | None = None) -> None:
+        self.config = config or EnvConfig()
+        self._sim: Simulator | None = None
+        self._executor: PickExecutor | None = None
+        self._bin: BinSpec | None = None
+        self._bodies: list[int] = []
+        self._synced: Mapping[str, Any] | None = None
+        self.scene: Scene | None = None
+
+    def _world(self, spec: BinSpec) -> PickExecutor:
+        """The client, tote and arm, made on first use and again only if the tote changes."""
+        if self._executor is not None and spec == self._bin:
+            return self._executor
+        self.close()
+        cfg = self.config
+        self._sim = Simulator(dataclasses.replace(cfg.sim, egl_rendering=False))
+        self._sim.add_bin(spec)
+        arm = Gen3Arm(self._sim.client, cfg.arm)
+        self._executor = PickExecutor(self._sim, arm, cfg.grasp, cfg.suction)
+        centre = np.array([*spec.center_xy, spec.floor_z + cfg.grasp.ready_height])  # the env's ready pose
+        ready = arm.ik(centre, np.array([0.0, 0.0, -1.0]), seed=np.asarray(cfg.arm.ik_seed, dtype=np.float64))
+        if ready is not None:
+            self._executor.set_ready_seed(ready)
+        self._bin = spec
+        return self._executor
+
+    def sync(self, obs: Mapping[str, Any], library: AssetLibrary) -> None:
+        """Pose the twin as the ``state_dict`` observation ``obs`` has the pile (library assets by index, a
+        parcel outside the library as its oriented box); nothing to do for the observation it holds."""
+        if obs is self._synced:
+            return
+        spec = bin_from_vector(obs["bin"])
+        executor = self._world(spec)
+        sim = executor.sim
+        for body in self._bodies:
+            sim.remove(body)
+        self._bodies = []
+        rows = np.flatnonzero(np.asarray(obs["parcel_mask"]).astype(bool))
+        parcels = []
+        for k, row in enumerate(rows):
+            index = int(np.asarray(obs["parcel_asset_index"])[row])
+            asset = (asset_from_index(library, index) if index >= 0
+                     else box_asset(np.asarray(obs["parcel_extents"], dtype=np.float64)[row],
+                                    float(np.asarray(obs["parcel_mass"])[row])))
+            position = np.asarray(obs["parcel_position"], dtype=np.float64)[row]
+            orientation = np.asarray(obs["parcel_quaternion"], dtype=np.float64)[row]
+            body = sim.add_parcel(asset, position, orientation, TWIN_FRICTION)
+            self._bodies.append(body)
+            parcels.append(ParcelState(k, body, asset, position, orientation, TWIN_FRICTION))
+        self.scene = Scene(parcels=parcels, bin=spec, seed=0, layout="twin", object_set="twin", split="test")
+        self._synced = obs
+
+    def refusal(self, point: np.ndarray, normal: np.ndarray) -> Failure | None:
+        """Why the cell would refuse this pick before it moves (``PickExecutor.refusal``), or None."""
+        executor, scene = self._require()
+        return executor.refusal(scene, point, normal)
+
+    def lifts(self, point: np.ndarray, normal: np.ndarray, top: float) -> bool:
+        """Whether the straight lift from the contact ``point`` up to height ``top``, tool on -``normal``, solves
+        by the cell's line rule (``Gen3Arm.line_path``: IK every 1.5 cm, no branch jump, yaw free) from an IK
+        answer at the contact on either branch the cell's plan may take (the ready pose's, then the Kinova
+        home's). Stricter than the plan's own test (``PickExecutor._lift_solves``, from the approach's last
+        configuration), which passed a pick on a face tilted 25 deg whose lift then drove joint 4 to its limit
+        10-12 cm up (`unreachable: lift, ik jumped 1.01 rad`, rectangular stacked episode 3 of the report)."""
+        executor, _ = self._require()
+        arm = executor.arm
+        axis = -np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+        point = np.asarray(point, dtype=np.float64)
+        end = np.array([point[0], point[1], float(top)])
+        for seed in (executor.ready_q, np.asarray(arm.config.ik_seed, dtype=np.float64)):
+            q = arm.ik(point, axis, seed=seed)
+            if q is not None and arm.line_path(q, end, axis)[0] is not None:
+                return True
+        return False
+
+    def _require(self) -> tuple[PickExecutor, Scene]:
+        if self._executor is None or self.scene is None:
+            raise RuntimeError("CellTwin asked about a pick before sync")
+        return self._executor, self.scene
+
+    def close(self) -> None:
+        if self._sim is not None:
+            self._sim.close()
+        self._sim, self._executor, self._bin, self._bodies, self._synced, self.scene = None, None, None, [], None, None
+
+    def __del__(self) -> None:  # best effort; the client is private to this object
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass

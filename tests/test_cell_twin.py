@@ -1,0 +1,68 @@
+"""The oracle's twin of the pick cell (policies/cell_twin.py): the simulator's geometry, and the cell's own verdict."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from parcelpick_env.assets.library import AssetLibrary
+from parcelpick_env.camera.config import CameraConfig
+from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
+from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+from policies.cell_twin import CellTwin
+
+SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256, obs_mode="state_dict")
+# a carton at the tote's centre, one turned beside it, and a flat one 2.5 cm from the -x wall
+PILE = BoxScene([PlacedBox((0.20, 0.15, 0.10), 0.5, (0.0, 0.0)),
+                 PlacedBox((0.15, 0.10, 0.06), 0.3, (0.20, 0.0), yaw=0.5),
+                 PlacedBox((0.25, 0.20, 0.05), 0.8, (-0.20, 0.10))])
+
+
+@pytest.fixture(scope="module")
+def cell():
+    env = ParcelPickEnv(scene_factory=PILE, **SMALL)
+    obs, info = env.reset(seed=0)
+    twin = CellTwin()
+    twin.sync(obs, AssetLibrary.default(int(info["asset_seed"])))
+    yield env, obs, twin
+    twin.close()
+    env.close()
+
+
+def test_the_twin_collides_the_pile_as_the_simulator_does(cell):
+    """Every parcel of the twin has the simulator's collision box to float32 rounding of the observed pose, and
+    syncing the same observation again changes nothing."""
+    env, obs, twin = cell
+    assert twin.scene is not None and len(twin.scene.parcels) == len(env.scene.parcels) == 3
+    bodies = [ps.body_id for ps in twin.scene.parcels]
+    for ps, body in zip(env.scene.parcels, bodies):
+        for theirs, ours in zip(env.sim.aabb(ps.body_id), twin._executor.sim.aabb(body)):
+            np.testing.assert_allclose(ours, theirs, atol=1e-5)
+    twin.sync(obs, AssetLibrary.default(0))
+    assert [ps.body_id for ps in twin.scene.parcels] == bodies
+
+
+def test_the_twin_gives_the_cells_own_verdict_before_it_moves(cell):
+    """A pick at the top centre of the middle carton is planned, and lifts; a pick on the flat carton's face towards the
+    wall, approached from the wall's side, is refused before the arm moves, as the cell itself refuses it (the
+    same move, link and condition in the env's info)."""
+    env, _, twin = cell
+    top = np.array([0.0, 0.0, 0.10])
+    assert twin.refusal(top, np.array([0.0, 0.0, 1.0])) is None
+    assert twin.lifts(top, np.array([0.0, 0.0, 1.0]), 0.5)  # and straight up to 50 cm by the cell's line rule
+    assert not twin.lifts(np.array([1.5, 0.0, 0.3]), np.array([0.0, 0.0, 1.0]), 0.5)  # 1.5 m off: no IK at all
+    point = np.array([env.scene.parcels[2].world_mesh().bounds[0, 0], 0.10, 0.025])  # its face towards the wall
+    normal = np.array([-1.0, 0.0, 0.0])
+    refused = twin.refusal(point, normal)
+    assert refused is not None and refused.move in ("hover", "descend", "approach")
+    _, _, _, _, info = env.step(np.concatenate([point, normal]).astype(np.float32))
+    assert info["outcome"] == "unreachable"
+    failure = info["failure"]
+    assert (failure["move"], failure["link"], failure["condition"]) == (refused.move, refused.link, refused.condition)
+
+
+def test_the_twin_refuses_to_answer_before_it_is_synced():
+    for ask in (lambda twin: twin.refusal(np.zeros(3), np.array([0.0, 0.0, 1.0])),
+                lambda twin: twin.lifts(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.5)):
+        with pytest.raises(RuntimeError, match="before sync"):
+            ask(CellTwin())
