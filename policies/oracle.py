@@ -41,12 +41,13 @@ How it picks, per parcel, on the true meshes:
    Where no candidate is admissible even on the steep last-resort faces, the oracle still tries: the tool-free
    candidates, sealing ones first, then the smallest worst ring ratio, approaches that already failed last
    (``_best_guesses``), as a real cell would rather than stand idle.
-4. Reachability (``ArmReach``): the arm's own numpy IK, chained from the pre-grasp point through the
-   contact up to the carrying height, and the cell's own lift rule from the contact (``ArmReach.lifts``:
-   ``Gen3Arm.line_path``, no IK branch jump); the first ranked candidate that passes is proposed, the unreachable
-   ones checked go to the back (never out). Where it reaches none of the first ``reach_checks``, the env's
-   own IK (on a private copy of the arm) checks the first ``confirm_checks`` again, and where that refuses
-   them too, the best candidate of every other parcel is checked in rank order.
+4. Reachability: the arm's own numpy IK (``ArmReach``), chained from the pre-grasp point through the contact
+   up to the carrying height and over to the drop zone, and the cell's own plan, asked of a twin of the tote,
+   arm and pile (``policies/cell_twin.py``: hover, descent, approach and lift as ``PickExecutor`` plans them,
+   and the lift by the cell's line rule); the first ranked candidate that passes is proposed, the unreachable
+   ones checked go to the back (never out). Where none of the first ``reach_checks`` passes, the first
+   ``confirm_checks`` are asked of the cell's plan alone, then the best candidate of every other parcel in
+   rank order, then ``spread_checks`` candidates spread over the approaches offered.
 
 ``scores`` in the returned ``Candidates`` encode that rank (1 for the first, falling linearly); the
 physical scores of the returned candidates are kept in ``last_scores`` and their parcels in
@@ -120,7 +121,7 @@ class OracleConfig:
     # half a millimetre either way of the predicted one as the parcel settles under the cup (3 no_seal on the grids)
     seal_standoff: float = 0.001  # m
     reach_checks: int = 40  # ranked candidates checked for reachability (IK along the pick) per decision
-    # where all of those fail, this many of the first are checked again by the cell's own IK (slow, exact), and
+    # where all of those fail, this many of the first are asked again of the cell's own plan alone (its twin), and
     # if it refuses them too, the best candidate of each other parcel is checked in rank order (``_reachable_first``)
     confirm_checks: int = 2
     # and where every check above refuses, this many candidates spread over the approaches offered (farthest
@@ -560,7 +561,8 @@ class OraclePolicy(Policy):
         and the rest of the pile, at least ``min_lift`` up)."""
         g = self.grasp
         others = [m.bounds[1, 2] for k, m in enumerate(truth.meshes) if k != parcel]
-        carry = max([float(truth.obstacles_top), *others]) + g.clearance + (point[2] - truth.meshes[parcel].bounds[0, 2])
+        below = point[2] - truth.meshes[parcel].bounds[0, 2]  # the held parcel's extent under the contact
+        carry = max([float(truth.obstacles_top), *others]) + g.clearance + below
         return float(max(carry, point[2] + g.min_lift))
 
     def _pick_line(self, point: np.ndarray, normal: np.ndarray, parcel: int, truth: GroundTruth) -> np.ndarray:
@@ -584,9 +586,10 @@ class OraclePolicy(Policy):
         unreachable moved to the back.
 
         A pick passes where the fast check (``ArmReach.reaches``, along the whole pick to the drop zone) and
-        the cell's own plan on its twin (``CellTwin.refusal``: hover, descent, approach and lift, on the IK
-        branch the cell would take; and ``CellTwin.lifts``, the lift by the cell's line rule) both accept it; at most ``reach_checks`` in rank order. Where none does, the
-        first ``confirm_checks`` are asked of the cell's plan alone: the fast check misses poses the cell
+        the cell's own plan on its twin accept it (``CellTwin.refusal``: hover, descent, approach and lift on
+        the IK branch the cell would take; ``CellTwin.lifts``: the lift by the cell's line rule); at most
+        ``reach_checks`` in rank order. Where none does, the first ``confirm_checks`` are asked of the cell's
+        plan alone: the fast check misses poses the cell
         reaches, and holds a tilted pick's axis over to the drop zone, where the cell turns the tool down (the
         Table V grid's 10 such decisions were all successes, 4 of them picks tilted 31-55 deg whose tilted
         transport no IK solves). Where that refuses too, the best candidate of each parcel not yet checked, in
