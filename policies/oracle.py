@@ -295,6 +295,12 @@ def hull_contacts(truth: GroundTruth, gap: float = 0.004, spacing: float = 0.005
             continue
         query = np.concatenate([samples[j] for j in near])
         other = np.repeat(near, [len(samples[j]) for j in near])
+        # a sample more than ``gap`` outside this hull's box is more than ``gap`` from the hull: only the rest is
+        # queried (the same contacts, in the same order; most of a neighbour's samples lie far from this hull)
+        close = np.all((query >= lo[k] - gap) & (query <= hi[k] + gap), axis=1)
+        if not np.any(close):
+            continue
+        query, other = query[close], other[close]
         found = build_scene([hulls[k]]).compute_closest_points(
             o3d.core.Tensor.from_numpy(query.astype(np.float32)), nthreads=num_threads)
         closest = found["points"].numpy().astype(np.float64)

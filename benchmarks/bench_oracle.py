@@ -1,0 +1,87 @@
+"""What an oracle decision costs, and how much of it is the cell's own plan on the twin (policies/cell_twin.py).
+
+    .venv/bin/python benchmarks/bench_oracle.py [--parcels 10 30] [--piles 3] [--repeats 3]
+
+Each pile is a stacked mixed ``ParcelPick-v0`` pile (``obs_mode="state_dict"``) built by the env at a fixed seed;
+the oracle decides on it ``--repeats`` times (reset between, so nothing is remembered), once more with the twin
+answering at once (the rest of the decision's cost), and the twin's parts are timed on their own: a sync to a pile it does not hold yet, and the plan (``CellTwin.refusal``) and lift test
+(``CellTwin.lifts``, 30 cm up) of the pick the oracle chose. Medians over every pile and repeat.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import gymnasium as gym  # noqa: E402
+
+import parcelpick_env  # noqa: E402,F401  (registers ParcelPick-v0)
+from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
+from parcelpick_env.camera.config import CameraConfig  # noqa: E402
+from policies.cell_twin import CellTwin  # noqa: E402
+from policies.oracle import OraclePolicy  # noqa: E402
+
+
+def timed(fn) -> tuple[float, object]:
+    start = time.perf_counter()
+    out = fn()
+    return (time.perf_counter() - start) * 1e3, out
+
+
+def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
+    env = gym.make("ParcelPick-v0", object_set="mixed", layout="stacked", num_parcels=parcels,
+                   obs_mode="state_dict", camera=CameraConfig(width=160, height=120), num_points=256)
+    policy, twin = OraclePolicy(), CellTwin()
+    # the same oracle with the twin's answers given at once: what the rest of a decision costs
+    untwinned = OraclePolicy()
+    untwinned.twin.refusal = lambda point, normal: None  # type: ignore[method-assign]
+    untwinned.twin.lifts = lambda point, normal, top: True  # type: ignore[method-assign]
+    rows: dict[str, list[float]] = {"decision": [], "untwinned": [], "sync": [], "plan": [], "lift": []}
+    try:
+        for pile in range(piles):
+            obs, info = env.reset(seed=pile)
+            library = AssetLibrary.default(int(info["asset_seed"]))
+            for _ in range(repeats):
+                policy.reset()
+                ms, picks = timed(lambda: policy.predict(obs, info))
+                rows["decision"].append(ms)
+                untwinned.reset()
+                rows["untwinned"].append(timed(lambda: untwinned.predict(obs, info))[0])
+                fresh = dict(obs)  # a pile the twin does not hold yet
+                rows["sync"].append(timed(lambda: twin.sync(fresh, library))[0])
+                point, normal = picks.points[0].astype(np.float64), picks.normals[0].astype(np.float64)
+                rows["plan"].append(timed(lambda: twin.refusal(point, normal))[0])
+                rows["lift"].append(timed(lambda: twin.lifts(point, normal, float(point[2]) + 0.3))[0])
+    finally:
+        twin.close()
+        env.close()
+    return {name: float(np.median(values)) for name, values in rows.items()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--parcels", type=int, nargs="+", default=[10, 30])
+    parser.add_argument("--piles", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    if min(args.parcels) < 1 or args.piles < 1 or args.repeats < 1:
+        parser.error("--parcels, --piles and --repeats must be >= 1")
+    print(f"stacked mixed piles, {args.piles} piles x {args.repeats} decisions each; medians in ms")
+    print("| parcels | oracle decision | the same, twin answering at once | twin sync (new pile) | cell's plan of the "
+          "pick | lift test of the pick (30 cm) |")
+    print("|---|---|---|---|---|---|")
+    for parcels in args.parcels:
+        r = bench(parcels, args.piles, args.repeats)
+        print(f"| {parcels} | {r['decision']:.0f} | {r['untwinned']:.0f} | {r['sync']:.1f} | {r['plan']:.0f} | "
+              f"{r['lift']:.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
