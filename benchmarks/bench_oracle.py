@@ -4,8 +4,9 @@
 
 Each pile is a stacked mixed ``ParcelPick-v0`` pile (``obs_mode="state_dict"``) built by the env at a fixed seed;
 the oracle decides on it ``--repeats`` times (reset between, so nothing is remembered), once more with the twin
-answering at once (the rest of the decision's cost), and the twin's parts are timed on their own: a sync to a pile it does not hold yet, and the plan (``CellTwin.refusal``) and lift test
-(``CellTwin.lifts``, 30 cm up) of the pick the oracle chose. Medians over every pile and repeat.
+answering at once (the rest of the decision's cost), and the twin's parts are timed on their own: a sync to a
+pile it does not hold yet, and the plan (``CellTwin.refusal``) and lift test (``CellTwin.lifts``, 30 cm up) of
+the pick the oracle chose. Medians over every pile and repeat.
 """
 
 from __future__ import annotations

@@ -30,14 +30,15 @@ def cell():
 
 
 def test_the_twin_collides_the_pile_as_the_simulator_does(cell):
-    """Every parcel of the twin has the simulator's collision box to float32 rounding of the observed pose, and
-    syncing the same observation again changes nothing."""
+    """Every parcel of the twin has the simulator's collision box to float32 rounding of the observed pose, its
+    plan starts from the env's own ready pose, and syncing the same observation again changes nothing."""
     env, obs, twin = cell
     assert twin.scene is not None and len(twin.scene.parcels) == len(env.scene.parcels) == 3
     bodies = [ps.body_id for ps in twin.scene.parcels]
     for ps, body in zip(env.scene.parcels, bodies):
         for theirs, ours in zip(env.sim.aabb(ps.body_id), twin._executor.sim.aabb(body)):
             np.testing.assert_allclose(ours, theirs, atol=1e-5)
+    np.testing.assert_allclose(twin._executor.ready_q, env.executor.ready_q, atol=1e-9)
     twin.sync(obs, AssetLibrary.default(0))
     assert [ps.body_id for ps in twin.scene.parcels] == bodies
 
@@ -48,7 +49,10 @@ def test_the_twin_gives_the_cells_own_verdict_before_it_moves(cell):
     same move, link and condition in the env's info)."""
     env, _, twin = cell
     top = np.array([0.0, 0.0, 0.10])
+    arm = twin._executor.arm
+    q = arm.q.copy()
     assert twin.refusal(top, np.array([0.0, 0.0, 1.0])) is None
+    np.testing.assert_array_equal(arm.q, q)  # planning moves nothing
     assert twin.lifts(top, np.array([0.0, 0.0, 1.0]), 0.5)  # and straight up to 50 cm by the cell's line rule
     assert not twin.lifts(np.array([1.5, 0.0, 0.3]), np.array([0.0, 0.0, 1.0]), 0.5)  # 1.5 m off: no IK at all
     point = np.array([env.scene.parcels[2].world_mesh().bounds[0, 0], 0.10, 0.025])  # its face towards the wall

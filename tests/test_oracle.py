@@ -3,7 +3,6 @@ of mass, and a ceiling that delivers what a perfect perception stack would."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 import trimesh
