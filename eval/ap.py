@@ -36,7 +36,7 @@ import numpy as np
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dataset.scene_record import bin_from_record, require_keys, scene_from_record  # noqa: E402,F401 (re-exported)
+from dataset.scene_record import bin_from_record, require_keys, scene_from_record  # noqa: E402
 from dataset.storage import Record, ShardedDataset, open_dataset  # noqa: E402
 from eval.metrics import (  # noqa: E402
     DEFAULT_MAX_K,

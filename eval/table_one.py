@@ -8,7 +8,7 @@
 For each split (seen / similar / novel: ``dataset.suctionnet.layout.TEST_SPLITS``, scenes 100-129, 130-159,
 160-189) and camera, each view is read straight from the tree (``dataset.suctionnet.reader.read_view``: nothing
 is imported or cached) and every policy is scored on it by ``eval.ap.evaluate_scene`` under the ``suctionnet``
-quality definition, on the view's own SuctionNet models (``eval.ap.scene_from_record``). As suctionnetAPI does,
+quality definition, on the view's own SuctionNet models (``dataset.scene_record.scene_from_record``). As suctionnetAPI does,
 a scene's precision curve is the mean of its views' curves and a split's figures the mean over its scenes
 (``eval.metrics.aggregate_ap``), so the bootstrap 95% intervals resample scenes, not the correlated views of one
 scene. Where DIR is absent or holds no test scene, one line says so and the command exits 0.

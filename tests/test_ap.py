@@ -15,7 +15,8 @@ import open3d as o3d
 import pytest
 
 from dataset.storage import shard_name, write_manifest, write_shard
-from eval.ap import APConfig, evaluate_ap, main, observation_from_record, scene_from_record
+from dataset.scene_record import scene_from_record
+from eval.ap import APConfig, evaluate_ap, main, observation_from_record
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.scene.scene import BinSpec
 from policies.base import Candidates, Policy

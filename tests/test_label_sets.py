@@ -9,7 +9,8 @@ import pytest
 from dataset.config import GenerationConfig
 from dataset.generate import generate
 from dataset.storage import open_dataset
-from eval.ap import label_observation, label_score_key, scene_from_record
+from dataset.scene_record import scene_from_record
+from eval.ap import label_observation, label_score_key
 from parcelpick_env.suction.quality import PhysicalCell, definition_scorer, score_definition
 
 

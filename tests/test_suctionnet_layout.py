@@ -199,7 +199,7 @@ def test_a_tree_without_the_parcelpick_sidecar_reads_as_suctionnet_data(native, 
     assert np.all(np.sum((cam - back["points"]) * back["normals"], axis=1) >= -1e-6)  # normals face the camera
     on = back["object_ids"] >= 0
     np.testing.assert_array_equal(back["labels"][on, 3], 1.0)  # SuctionNet has no visibility label
-    from eval.ap import bin_from_record
+    from dataset.scene_record import bin_from_record
 
     table = bin_from_record(back).floor_meshes()[0].bounds  # suctionnetAPI's table: 1 m square, top at z = 0
     assert table[1, 2] == pytest.approx(0.0) and np.all(table[0, :2] <= -0.5) and np.all(table[1, :2] >= 0.5)
@@ -209,7 +209,7 @@ def test_a_tree_without_the_parcelpick_sidecar_reads_as_suctionnet_data(native, 
 
 
 def _native_meshes(record):
-    from eval.ap import scene_from_record
+    from dataset.scene_record import scene_from_record
 
     return scene_from_record(record).world_meshes()
 
@@ -319,7 +319,7 @@ def test_the_two_commands_export_and_import(native, tmp_path):
 def test_a_suctionnet_view_is_scored_on_its_own_models(native, copy):
     """Without the sidecar the asset library cannot name the objects: the evaluator rebuilds the scene from the
     view's models, and a pick's suctionnet quality there equals the same pick's on the native parcels."""
-    from eval.ap import scene_from_record
+    from dataset.scene_record import scene_from_record
     from parcelpick_env.suction.quality import definition_scorer, score_definition
 
     (Layout(copy).view_file(100, CAMERA, "parcelpick", 0)).unlink()
