@@ -52,8 +52,7 @@ class CellTwin:
         self._sim.add_bin(spec)
         arm = Gen3Arm(self._sim.client, cfg.arm)
         self._executor = PickExecutor(self._sim, arm, cfg.grasp, cfg.suction)
-        centre = np.array([*spec.center_xy, spec.floor_z + cfg.grasp.ready_height])  # the env's ready pose
-        ready = arm.ik(centre, np.array([0.0, 0.0, -1.0]), seed=np.asarray(cfg.arm.ik_seed, dtype=np.float64))
+        ready = self._executor.ready_pose(spec)  # the env's
         if ready is not None:
             self._executor.set_ready_seed(ready)
         self._bin = spec

@@ -41,7 +41,7 @@ from parcelpick_env.envs.config import GraspConfig
 from parcelpick_env.robot.arm import LINE_STEP, MAX_IK_JUMP, Contact, Gen3Arm
 from parcelpick_env.robot.planning import Attachment
 from parcelpick_env.robot.timing import Trajectory, concatenate, hold_trajectory, joint_trajectory, path_trajectory
-from parcelpick_env.scene.scene import ParcelState, Scene
+from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 from parcelpick_env.suction.config import SuctionConfig
 from parcelpick_env.suction.cup import (CONDITIONS, Contacts, HoldMonitor, ToolState, contact_forces, mesh_inertia,
@@ -218,6 +218,12 @@ class PickExecutor:
         self._reports: list[MoveReport] = []
         self._dynamic_steps = 0
         self._t0 = 0.0
+
+    def ready_pose(self, spec: BinSpec) -> np.ndarray | None:
+        """Joint angles with the cup straight down ``ready_height`` above the centre of the bin ``spec``, solved
+        from the Kinova home (``ArmConfig.ik_seed``): the hover IK's seed (``set_ready_seed``), or None."""
+        centre = np.array([*spec.center_xy, spec.floor_z + self.grasp.ready_height])
+        return self.arm.ik(centre, np.array([0.0, 0.0, -1.0]), seed=np.asarray(self.arm.config.ik_seed, dtype=np.float64))
 
     def set_ready_seed(self, q: np.ndarray) -> None:
         """A configuration above the bin centre: seeds IK for the hover point."""

@@ -276,9 +276,7 @@ class ParcelPickEnv(gym.Env):
         self.arm = Gen3Arm(self.sim.client, self.config.arm)
         self.executor = PickExecutor(self.sim, self.arm, self.config.grasp, self.config.suction)
         if self._ready_q is None:
-            centre = np.array([*self.scene.bin.center_xy, self.scene.bin.floor_z + self.config.grasp.ready_height])
-            self._ready_q = self.arm.ik(centre, np.array([0.0, 0.0, -1.0]),
-                                        seed=np.asarray(self.config.arm.ik_seed, dtype=np.float64))
+            self._ready_q = self.executor.ready_pose(self.scene.bin)
         if self._ready_q is not None:
             self.executor.set_ready_seed(self._ready_q)
         self._settle_against_arm()
