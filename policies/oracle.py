@@ -175,7 +175,6 @@ class GroundTruth:
     bin_centre: np.ndarray  # (2,)
     obstacles_top: float = 0.0  # m: the bin rim's height
     asset_index: np.ndarray | None = None  # (P,) library index of each parcel, < 0 outside the library
-    floor_z: float = 0.0  # m: the bin floor's height
 
 
 def ground_truth(obs: Mapping[str, Any], library: AssetLibrary) -> GroundTruth:
@@ -203,8 +202,7 @@ def ground_truth(obs: Mapping[str, Any], library: AssetLibrary) -> GroundTruth:
     return GroundTruth(meshes=meshes, coms=np.asarray(obs["parcel_com"], dtype=np.float64)[rows],
                        masses=np.asarray(obs["parcel_mass"], dtype=np.float64)[rows], obstacles=spec.meshes(),
                        bin_centre=np.asarray(spec.center_xy, dtype=np.float64),
-                       obstacles_top=float(spec.floor_z + spec.wall_height), asset_index=index,
-                       floor_z=float(spec.floor_z))
+                       obstacles_top=float(spec.floor_z + spec.wall_height), asset_index=index)
 
 
 def uncovered_top_points(truth: GroundTruth, offsets: np.ndarray, num_threads: int = 0,
