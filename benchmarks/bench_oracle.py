@@ -1,12 +1,13 @@
-"""What an oracle decision costs, and how much of it is the cell's own plan on the twin (policies/cell_twin.py).
+"""What an oracle decision costs, and how much of it is the cell's own plan and rehearsal on the twin (policies/cell_twin.py).
 
     .venv/bin/python benchmarks/bench_oracle.py [--parcels 10 30] [--piles 3] [--repeats 3]
 
 Each pile is a stacked mixed ``ParcelPick-v0`` pile (``obs_mode="state_dict"``) built by the env at a fixed seed;
 the oracle decides on it ``--repeats`` times (reset between, so nothing is remembered), once more with the twin
-answering at once (the rest of the decision's cost), and the twin's parts are timed on their own: a sync to a
-pile it does not hold yet, and the plan (``CellTwin.refusal``) and lift test (``CellTwin.lifts``, 30 cm up) of
-the pick the oracle chose. Medians over every pile and repeat.
+answering at once and nothing rehearsed (the rest of the decision's cost), and the twin's parts are timed on their
+own: a sync to a pile it does not hold yet, and the plan (``CellTwin.refusal``), lift test (``CellTwin.lifts``,
+30 cm up) and rehearsal (``CellTwin.rehearse``, the whole attempt with dynamics) of the pick the oracle chose.
+Medians over every pile and repeat; a decision rehearses more than once only where its first pick fails there.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import parcelpick_env  # noqa: E402,F401  (registers ParcelPick-v0)
 from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
 from parcelpick_env.camera.config import CameraConfig  # noqa: E402
 from policies.cell_twin import CellTwin  # noqa: E402
-from policies.oracle import OraclePolicy  # noqa: E402
+from policies.oracle import OracleConfig, OraclePolicy  # noqa: E402
 
 
 def timed(fn) -> tuple[float, object]:
@@ -39,11 +40,12 @@ def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
     env = gym.make("ParcelPick-v0", object_set="mixed", layout="stacked", num_parcels=parcels,
                    obs_mode="state_dict", camera=CameraConfig(width=160, height=120), num_points=256)
     policy, twin = OraclePolicy(), CellTwin()
-    # the same oracle with the twin's answers given at once: what the rest of a decision costs
-    untwinned = OraclePolicy()
+    # the same oracle with the twin's answers given at once and no rehearsal: what the rest of a decision costs
+    untwinned = OraclePolicy(OracleConfig(rehearsals=0))
     untwinned.twin.refusal = lambda point, normal: None  # type: ignore[method-assign]
     untwinned.twin.lifts = lambda point, normal, top: True  # type: ignore[method-assign]
-    rows: dict[str, list[float]] = {"decision": [], "untwinned": [], "sync": [], "plan": [], "lift": []}
+    rows: dict[str, list[float]] = {"decision": [], "untwinned": [], "sync": [], "plan": [], "lift": [],
+                                    "rehearsal": [], "rehearsals": []}
     try:
         for pile in range(piles):
             obs, info = env.reset(seed=pile)
@@ -52,6 +54,7 @@ def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
                 policy.reset()
                 ms, picks = timed(lambda: policy.predict(obs, info))
                 rows["decision"].append(ms)
+                rows["rehearsals"].append(len(policy.last_rehearsals))
                 untwinned.reset()
                 rows["untwinned"].append(timed(lambda: untwinned.predict(obs, info))[0])
                 fresh = dict(obs)  # a pile the twin does not hold yet
@@ -59,6 +62,7 @@ def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
                 point, normal = picks.points[0].astype(np.float64), picks.normals[0].astype(np.float64)
                 rows["plan"].append(timed(lambda: twin.refusal(point, normal))[0])
                 rows["lift"].append(timed(lambda: twin.lifts(point, normal, float(point[2]) + 0.3))[0])
+                rows["rehearsal"].append(timed(lambda: twin.rehearse(point, normal))[0])
     finally:
         twin.close()
         env.close()
@@ -73,14 +77,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if min(args.parcels) < 1 or args.piles < 1 or args.repeats < 1:
         parser.error("--parcels, --piles and --repeats must be >= 1")
-    print(f"stacked mixed piles, {args.piles} piles x {args.repeats} decisions each; medians in ms")
-    print("| parcels | oracle decision | the same, twin answering at once | twin sync (new pile) | cell's plan of the "
-          "pick | lift test of the pick (30 cm) |")
-    print("|---|---|---|---|---|---|")
+    print(f"stacked mixed piles, {args.piles} piles x {args.repeats} decisions each; medians")
+    print("| parcels | oracle decision | rehearsals in it | the same, twin answering at once, no rehearsal | twin sync "
+          "(new pile) | cell's plan of the pick | lift test of the pick (30 cm) | rehearsal of the pick |")
+    print("|---|---|---|---|---|---|---|---|")
     for parcels in args.parcels:
         r = bench(parcels, args.piles, args.repeats)
-        print(f"| {parcels} | {r['decision']:.0f} | {r['untwinned']:.0f} | {r['sync']:.1f} | {r['plan']:.0f} | "
-              f"{r['lift']:.0f} |")
+        print(f"| {parcels} | {r['decision']:.0f} ms | {r['rehearsals']:.0f} | {r['untwinned']:.0f} ms | "
+              f"{r['sync']:.1f} ms | {r['plan']:.0f} ms | {r['lift']:.0f} ms | {r['rehearsal']:.0f} ms |")
     return 0
 
 

@@ -1,14 +1,16 @@
-"""A kinematic twin of the pick cell, on which the privileged oracle asks the cell's own planner about a pick.
+"""A twin of the pick cell, on which the privileged oracle asks the cell's own planner about a pick, and rehearses it.
 
 The oracle's reach checks (``policies/oracle.py``, ``ArmReach``) are fast models of the arm alone. The cell
 also refuses picks for reasons those models cannot see: a wrist inside the tote's wall at every hover the IK
 finds, a descent that sweeps a link through a neighbour, a lift whose IK branch jumps. ``CellTwin`` builds the
 tote, the Gen3 and every parcel, each as the simulator collides it (``Simulator.add_parcel``: the asset's
-hull, the simulator's margin), in a private pybullet DIRECT client, posed from the privileged ``state_dict``
-observation, and asks ``PickExecutor.refusal`` there: the env's own plan, run on the same geometry, without
-dynamics. Nothing here is stepped; a refusal is the cell's own verdict before it moves, not a guess. What it
-cannot know: the dynamics after contact (seal, hold, a neighbour's drag), the free move from wherever the arm
-is (the env plans it at run time), and a custom scene's fixtures, which the ``state_dict`` does not carry.
+hull, mass and centre of mass, the simulator's margin, the parcel's friction), in a private pybullet DIRECT
+client, posed from the privileged ``state_dict`` observation. ``refusal`` asks ``PickExecutor.refusal`` there:
+the env's own plan, run on the same geometry without dynamics, the cell's verdict before it moves.
+``rehearse`` runs the env's whole attempt there, dynamics and all (the seal, the hold, a neighbour's drag in
+the lift), then poses the twin again as observed. What it cannot know: the pile's contact history (the twin's
+contacts start fresh from float32 poses, so a chaotic lift may end otherwise in the env), and a custom scene's
+fixtures, which the ``state_dict`` does not carry.
 """
 
 from __future__ import annotations
@@ -21,17 +23,15 @@ import numpy as np
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.custom_scene import box_asset
-from parcelpick_env.envs.grasp import Failure, PickExecutor
+from parcelpick_env.envs.grasp import Failure, PickExecutor, PickResult
 from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
 from parcelpick_env.robot.arm import Gen3Arm
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 
-TWIN_FRICTION = 0.5  # no contact is ever resolved in the twin; add_parcel needs a value
-
 
 class CellTwin:
-    """The cell's tote, arm and parcels without dynamics, posed by ``sync``; ``refusal`` is the cell's plan."""
+    """The cell's tote, arm and parcels, posed by ``sync``; ``refusal`` is the cell's plan, ``rehearse`` its attempt."""
 
     def __init__(self, config: EnvConfig | None = None) -> None:
         self.config = config or EnvConfig()
@@ -40,6 +40,7 @@ class CellTwin:
         self._bin: BinSpec | None = None
         self._bodies: list[int] = []
         self._synced: Mapping[str, Any] | None = None
+        self._library: AssetLibrary | None = None
         self.scene: Scene | None = None
 
     def _world(self, spec: BinSpec) -> PickExecutor:
@@ -61,14 +62,16 @@ class CellTwin:
     def sync(self, obs: Mapping[str, Any], library: AssetLibrary) -> None:
         """Pose the twin as the ``state_dict`` observation ``obs`` has the pile (library assets by index, a
         parcel outside the library as its oriented box); nothing to do for the observation it holds."""
-        if obs is self._synced:
+        if obs is self._synced and library is self._library:
             return
         spec = bin_from_vector(obs["bin"])
         executor = self._world(spec)
         sim = executor.sim
         for body in self._bodies:
-            sim.remove(body)
+            if sim.has_body(body):  # a rehearsal releases the parcel it carried off
+                sim.remove(body)
         self._bodies = []
+        executor.arm.home()  # where the env's arm starts every attempt (its retreat ends there)
         rows = np.flatnonzero(np.asarray(obs["parcel_mask"]).astype(bool))
         parcels = []
         for k, row in enumerate(rows):
@@ -78,16 +81,29 @@ class CellTwin:
                                     float(np.asarray(obs["parcel_mass"])[row])))
             position = np.asarray(obs["parcel_position"], dtype=np.float64)[row]
             orientation = np.asarray(obs["parcel_quaternion"], dtype=np.float64)[row]
-            body = sim.add_parcel(asset, position, orientation, TWIN_FRICTION)
+            friction = float(np.asarray(obs["parcel_friction"])[row])
+            body = sim.add_parcel(asset, position, orientation, friction)
             self._bodies.append(body)
-            parcels.append(ParcelState(k, body, asset, position, orientation, TWIN_FRICTION))
+            parcels.append(ParcelState(k, body, asset, position, orientation, friction))
         self.scene = Scene(parcels=parcels, bin=spec, seed=0, layout="twin", object_set="twin", split="test")
-        self._synced = obs
+        self._synced, self._library = obs, library
 
     def refusal(self, point: np.ndarray, normal: np.ndarray) -> Failure | None:
         """Why the cell would refuse this pick before it moves (``PickExecutor.refusal``), or None."""
         executor, scene = self._require()
         return executor.refusal(scene, point, normal)
+
+    def rehearse(self, point: np.ndarray, normal: np.ndarray) -> PickResult:
+        """The whole attempt on the twin, dynamics and all (``PickExecutor.attempt``: seal, hold checks, the
+        neighbours' drag), as the env would run it from this pile; the twin is then posed again as synced."""
+        executor, scene = self._require()
+        try:
+            return executor.attempt(scene, point, normal)
+        finally:
+            obs, library = self._synced, self._library
+            self._synced = None
+            if obs is not None and library is not None:
+                self.sync(obs, library)
 
     def lifts(self, point: np.ndarray, normal: np.ndarray, top: float) -> bool:
         """Whether the straight lift from the contact ``point`` up to height ``top``, tool on -``normal``, solves
@@ -115,7 +131,8 @@ class CellTwin:
     def close(self) -> None:
         if self._sim is not None:
             self._sim.close()
-        self._sim, self._executor, self._bin, self._bodies, self._synced, self.scene = None, None, None, [], None, None
+        self._sim, self._executor, self._bin, self._bodies = None, None, None, []
+        self._synced, self._library, self.scene = None, None, None
 
     def __del__(self) -> None:  # best effort; the client is private to this object
         try:

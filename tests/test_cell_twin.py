@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from parcelpick_env.assets.generator import CARTON_SIDE_RANGE, MAX_MASS
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
@@ -65,8 +66,39 @@ def test_the_twin_gives_the_cells_own_verdict_before_it_moves(cell):
     assert (failure["move"], failure["link"], failure["condition"]) == (refused.move, refused.link, refused.condition)
 
 
+def test_a_rehearsal_on_the_twin_ends_as_the_cells_attempt_and_leaves_the_twin_as_synced():
+    """The heaviest carton the cell allows, 40 x 30 cm on top: picked 15 cm off its centre, the twin's rehearsal
+    drops it on the material condition in the lift, as the env's attempt does; picked at its centre, both carry it
+    off. After each rehearsal the twin stands as the observation has it (the carried parcel back in place)."""
+    heavy = BoxScene([PlacedBox((0.40, 0.30, CARTON_SIDE_RANGE[1]), MAX_MASS, (0.05, 0.0), friction=0.8)])
+    env = ParcelPickEnv(scene_factory=heavy, **SMALL)
+    twin = CellTwin()
+    try:
+        obs, info = env.reset(seed=0)
+        twin.sync(obs, AssetLibrary.default(int(info["asset_seed"])))
+        sim = twin._executor.sim
+        box = sim.aabb(twin.scene.parcels[0].body_id)
+        top = np.array([0.05, 0.0, CARTON_SIDE_RANGE[1]])
+        up = np.array([0.0, 0.0, 1.0])
+        off = twin.rehearse(top + [0.15, 0.0, 0.0], up)
+        assert (off.outcome, off.failure.move) == ("dropped", "lift") and off.failure.condition.startswith("material")
+        centre = twin.rehearse(top, up)
+        assert centre.outcome == "success"
+        assert len(twin.scene.parcels) == 1
+        for ours, before in zip(sim.aabb(twin.scene.parcels[0].body_id), box):
+            np.testing.assert_allclose(ours, before, atol=1e-9)
+        np.testing.assert_allclose(twin._executor.arm.q, twin._executor.home_q, atol=1e-9)
+        _, _, _, _, info = env.step(np.concatenate([top + [0.15, 0.0, 0.0], up]).astype(np.float32))
+        assert (info["outcome"], info["failure"]["move"], info["failure"]["condition"][:8]) == (
+            "dropped", "lift", "material")
+    finally:
+        twin.close()
+        env.close()
+
+
 def test_the_twin_refuses_to_answer_before_it_is_synced():
     for ask in (lambda twin: twin.refusal(np.zeros(3), np.array([0.0, 0.0, 1.0])),
-                lambda twin: twin.lifts(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.5)):
+                lambda twin: twin.lifts(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.5),
+                lambda twin: twin.rehearse(np.zeros(3), np.array([0.0, 0.0, 1.0]))):
         with pytest.raises(RuntimeError, match="before sync"):
             ask(CellTwin())

@@ -20,7 +20,7 @@ from parcelpick_env.scene.scene import BinSpec
 
 SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256)
 TWO_BOXES = BoxScene([PlacedBox((0.30, 0.20, 0.10), 0.5, (-0.12, 0.05), 0.4),
-                      PlacedBox((0.16, 0.12, 0.08), 1.25, (0.18, -0.10), -0.2)])
+                      PlacedBox((0.16, 0.12, 0.08), 1.25, (0.18, -0.10), -0.2, friction=0.9)])
 ONE_BOX = BoxScene([PlacedBox((0.20, 0.15, 0.10), 0.4)])
 
 
@@ -78,6 +78,7 @@ def test_state_dict_is_the_true_scene_of_known_boxes():
         np.testing.assert_array_equal(obs["parcel_mask"], np.r_[1, 1, np.zeros(MAX_PARCELS - 2)].astype(np.int8))
         np.testing.assert_allclose(obs["parcel_mass"][:2], [0.5, 1.25], rtol=1e-6)
         np.testing.assert_allclose(obs["parcel_extents"][:2], [[0.30, 0.20, 0.10], [0.16, 0.12, 0.08]], rtol=1e-6)
+        np.testing.assert_allclose(obs["parcel_friction"][:3], [0.6, 0.9, 0.0], rtol=1e-6)  # the third is padding
         # resting flat where they were placed, centres of mass at the boxes' centres
         np.testing.assert_allclose(obs["parcel_position"][:2, :2], [[-0.12, 0.05], [0.18, -0.10]], atol=5e-3)
         np.testing.assert_allclose(obs["parcel_position"][:2, 2], [0.05, 0.04], atol=3e-3)

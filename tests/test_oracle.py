@@ -29,7 +29,8 @@ def state_obs(boxes) -> dict[str, np.ndarray]:
     obs = {"parcel_mask": np.zeros(m, np.int8), "parcel_position": np.zeros((m, 3), np.float32),
            "parcel_quaternion": np.tile(np.float32([0, 0, 0, 1]), (m, 1)), "parcel_com": np.zeros((m, 3), np.float32),
            "parcel_mass": np.zeros(m, np.float32), "parcel_asset_index": np.full(m, NOT_IN_LIBRARY, np.int64),
-           "parcel_extents": np.zeros((m, 3), np.float32), "bin": bin_vector(BinSpec())}
+           "parcel_extents": np.zeros((m, 3), np.float32), "parcel_friction": np.zeros(m, np.float32),
+           "bin": bin_vector(BinSpec())}
     for k, (extents, mass, centre, yaw, com) in enumerate(boxes):
         rotation = Rotation.from_euler("z", yaw)
         obs["parcel_mask"][k] = 1
@@ -38,6 +39,7 @@ def state_obs(boxes) -> dict[str, np.ndarray]:
         obs["parcel_com"][k] = rotation.apply(com) + np.asarray(centre)
         obs["parcel_mass"][k] = mass
         obs["parcel_extents"][k] = extents
+        obs["parcel_friction"][k] = 0.6
     obs["parcel_count"] = np.int64(len(boxes))
     return obs
 
@@ -253,6 +255,46 @@ def test_oracle_asks_the_cells_plan_where_the_fast_check_refuses_then_tries_the_
     assert rank(set(), {4}) == [0, 1, 2, 3, 4, 5]  # 4 is not among the spread: the ranking stands
 
 
+def test_oracle_takes_the_first_pick_that_holds_cleanly_in_a_rehearsal_on_the_twin(monkeypatch):
+    """Candidates 0-2 lie on parcel 0, 3 and 4 on parcel 1, 5 on parcel 2. Rehearsed in turn: the chosen pick, each
+    other parcel's best (3, then 5), then approaches spread over the offer; those the cell's plan refuses are passed
+    over without counting. A success whose ring ratios never passed 1 goes first at once; one that outlived a
+    brief violation only if nothing cleaner succeeds within ``rehearsals``; where nothing succeeds, the ranking
+    stands."""
+    from parcelpick_env.envs.grasp import Failure, PickResult
+    from policies.oracle import OracleConfig
+
+    owner = np.array([0, 0, 0, 1, 1, 2])
+    points = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    normals = np.tile([0.0, 0.0, 1.0], (6, 1))
+    order = np.arange(6)
+
+    def rank(outcomes: dict[int, tuple[str, float]], refused: set[int] = frozenset(), rehearsals: int = 16):
+        policy = OraclePolicy(OracleConfig(rehearsals=rehearsals))
+        asked: list[int] = []
+
+        def rehearse(point, normal):
+            asked.append(int(point[0]))
+            outcome, peak = outcomes.get(int(point[0]), ("dropped", 3.0))
+            return PickResult(outcome, None if outcome == "success" else Failure("lift"), peak_ratios={"x": peak})
+
+        monkeypatch.setattr(policy.twin, "rehearse", rehearse)
+        monkeypatch.setattr(policy.twin, "refusal", lambda point, normal: Failure("hover", condition="ik")
+                            if int(point[0]) in refused else None)
+        return policy._rehearsed_first(order, points, normals, owner).tolist(), asked, policy.last_rehearsals
+
+    assert rank({0: ("success", 0.4)}) == ([0, 1, 2, 3, 4, 5], [0], ["success"])  # the chosen pick holds
+    assert rank({5: ("success", 0.9)})[:2] == ([5, 0, 1, 2, 3, 4], [0, 3, 5])  # the other parcels' best, in rank
+    assert rank({5: ("success", 0.9)}, refused={3})[1] == [0, 5]  # refused by the plan: not rehearsed
+    # a marginal success (a ratio of 1.6 that did not last) waits for a clean one, and is taken if none comes
+    assert rank({3: ("success", 1.6), 5: ("success", 0.8)})[0][0] == 5
+    assert rank({3: ("success", 1.6), 5: ("success", 2.5)})[0][0] == 3
+    # nothing holds: every candidate rehearsed once (at most ``rehearsals``), and the ranking stands
+    order_kept, asked, outcomes = rank({}, rehearsals=4)
+    assert order_kept == order.tolist() and len(asked) == 4 and outcomes == ["dropped"] * 4
+    assert rank({}, rehearsals=0) == (order.tolist(), [], [])
+
+
 def carton_and_tray(carton: trimesh.Trimesh, rim_height: float):
     """Ground truth of ``carton`` (at x = -0.15, 0.5 kg) beside a 20 x 20 x 4 cm tray on the floor at x = 0.15 whose
     two 2 cm rims, ``rim_height`` tall, the convex hull bridges; the tray's top centre is (0.15, 0, 0.04)."""
@@ -361,7 +403,7 @@ def test_the_oracle_tool_probe_keeps_the_planners_clearance_between_true_surface
 
 
 @pytest.mark.parametrize("field, value", [("reach_checks", 0), ("confirm_checks", -1), ("probe_spacing", 0.0),
-                                          ("min_seal", 1.5)])
+                                          ("min_seal", 1.5), ("rehearsals", -1), ("clean_peak", 0.0)])
 def test_a_wrong_oracle_config_value_is_refused_by_name(field, value):
     from policies.oracle import OracleConfig
 

@@ -23,6 +23,7 @@
   parcel_asset_index   (50,) int64      index into the env's asset library; -1 for padding and
                                         for assets that are not in it (a custom scene's boxes)
   parcel_extents       (50, 3) float32  the oriented box: body-frame extents of the mesh, m
+  parcel_friction      (50,) float32    the parcel's lateral friction coefficient (pybullet's)
   bin                  (7,) float32     centre x, centre y, floor z, inner size x, inner size y,
                                         wall height, wall thickness (m)
   points, normals      (N, 3) float32   the same camera cloud as ``"pointcloud"``
@@ -48,7 +49,7 @@ from scipy.spatial.transform import Rotation
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.assets.parcel import ParcelAsset
 from parcelpick_env.envs.config import OBS_MODES
-from parcelpick_env.scene.config import MAX_PARCELS
+from parcelpick_env.scene.config import MAX_FRICTION, MAX_PARCELS
 from parcelpick_env.scene.scene import BinSpec
 
 if TYPE_CHECKING:
@@ -114,6 +115,7 @@ def _state_spaces(num_assets: int) -> dict[str, spaces.Space]:
         "parcel_mass": spaces.Box(0.0, MASS_LIMIT, (m,), np.float32),
         "parcel_asset_index": spaces.Box(NOT_IN_LIBRARY, max(num_assets - 1, 0), (m,), np.int64),
         "parcel_extents": spaces.Box(0.0, WORLD_LIMIT, (m, 3), np.float32),
+        "parcel_friction": spaces.Box(0.0, MAX_FRICTION, (m,), np.float32),
         "bin": spaces.Box(-WORLD_LIMIT, WORLD_LIMIT, (7,), np.float32),
     }
 
@@ -164,6 +166,7 @@ def state_dict(scene: "Scene", sim: "Simulator", asset_index: dict[str, int]) ->
     com = np.zeros((m, 3))
     mass = np.zeros(m)
     extents = np.zeros((m, 3))
+    friction = np.zeros(m)
     index = np.full(m, NOT_IN_LIBRARY, dtype=np.int64)
     if k:
         poses = [sim.body_pose(ps.body_id) for ps in parcels]
@@ -173,6 +176,7 @@ def state_dict(scene: "Scene", sim: "Simulator", asset_index: dict[str, int]) ->
         com[:k] = Rotation.from_quat(quaternion[:k]).apply(body_com) + position[:k]
         mass[:k] = [ps.asset.mass for ps in parcels]
         extents[:k] = [ps.asset.extents for ps in parcels]
+        friction[:k] = [ps.friction for ps in parcels]
         index[:k] = [asset_index.get(ps.asset.asset_id, NOT_IN_LIBRARY) for ps in parcels]
     mask = np.zeros(m, dtype=np.int8)
     mask[:k] = 1
@@ -185,6 +189,7 @@ def state_dict(scene: "Scene", sim: "Simulator", asset_index: dict[str, int]) ->
         "parcel_mass": np.clip(mass, 0.0, MASS_LIMIT).astype(np.float32),
         "parcel_asset_index": index,
         "parcel_extents": np.clip(extents, 0.0, WORLD_LIMIT).astype(np.float32),
+        "parcel_friction": np.clip(friction, 0.0, MAX_FRICTION).astype(np.float32),
         "bin": bin_vector(scene.bin),
     }
 

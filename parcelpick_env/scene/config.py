@@ -11,6 +11,7 @@ from parcelpick_env.scene.scene import BinSpec
 
 LAYOUTS: tuple[str, ...] = ("stacked", "scattered")
 MAX_PARCELS = 50
+MAX_FRICTION = 5.0  # the largest parcel friction coefficient a pile may draw (and the state_dict's bound)
 
 
 def check_pile_fields(config: Any) -> None:
@@ -58,8 +59,9 @@ class PileConfig:
         if not isinstance(self.bin, BinSpec):
             raise ValueError(f"bin must be a BinSpec, got {type(self.bin).__name__}")
         lo, hi = self.friction_range
-        if not (0 <= lo <= hi <= 5):
-            raise ValueError(f"friction_range must satisfy 0 <= low <= high <= 5, got {self.friction_range}")
+        if not (0 <= lo <= hi <= MAX_FRICTION):
+            raise ValueError(f"friction_range must satisfy 0 <= low <= high <= {MAX_FRICTION:g}, "
+                             f"got {self.friction_range}")
         if not 0 <= self.drop_height <= 2:
             raise ValueError(f"drop_height must be in [0, 2] m, got {self.drop_height}")
         if not 0 <= self.scatter_gap <= 0.2:
