@@ -208,9 +208,15 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 _log_policy_extras(env.unwrapped, policy)
                 first = False
             audit = _audit(env.unwrapped, action) if cfg.audit_picks else None
+            rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin
             obs, _, terminated, truncated, info = env.step(action)
             outcomes[info["outcome"]] += 1
-            attempt_log.append(attempt_record(info) if audit is None else {**attempt_record(info), "audit": audit})
+            record = attempt_record(info)
+            if audit is not None:
+                record["audit"] = audit
+            if rehearsals:
+                record["rehearsals"] = list(rehearsals)
+            attempt_log.append(record)
             if terminated or truncated:
                 break
         replay = getattr(env.unwrapped, "replay_path", None)
@@ -303,6 +309,10 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
             cell["by_cover"] = by_cover
     if (by_cover := cover_rates([r.attempt_log for r in results])) is not None:
         total["by_cover"] = by_cover
+    from eval.twin_agreement import rehearsal_counts
+
+    if (rehearsed := rehearsal_counts([r.attempt_log for r in results])) is not None:
+        total["rehearsals"] = rehearsed
     return {"cells": cells, "overall": total}
 
 
@@ -338,6 +348,10 @@ def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) 
             f"{where[kind]} {row['successes']}/{row['attempts']}" for kind, row in o["by_cover"].items())
             + "; on a covered parcel while a free one was left: "
               f"{o['by_cover'].get('covered', {}).get('while_free_left', 0)}")
+    if (r := o.get("rehearsals")):
+        lines.append(f"Rehearsed on the cell's twin: {r['held']} picks held there, {r['held_failed']} of them failed "
+                     f"here; {r['unheld']} with none held there (dead ends), {r['unheld_succeeded']} of them "
+                     "succeeded here")
     return "\n".join(lines)
 
 

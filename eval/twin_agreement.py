@@ -58,6 +58,20 @@ class Agreement:
         return sum(v.env != "success" and v.twin != "success" for v in self.verdicts)
 
 
+def rehearsal_counts(attempt_logs: list[list[dict[str, Any]]]) -> dict[str, int] | None:
+    """How a rehearsing policy's picks (attempt records with ``rehearsals``, ``eval/clearance.py``) went in the
+    env: ``held`` picks whose last rehearsal succeeded, and ``held_failed`` of them the env failed (where twin and
+    cell part); ``unheld`` picks for which no rehearsal succeeded (a dead end: the ranking's first was made), and
+    ``unheld_succeeded`` of them the env carried off. None where no attempt was rehearsed."""
+    rehearsed = [a for log in attempt_logs for a in log if a.get("rehearsals")]
+    if not rehearsed:
+        return None
+    held = [a for a in rehearsed if a["rehearsals"][-1] == "success"]
+    unheld = [a for a in rehearsed if a["rehearsals"][-1] != "success"]
+    return {"held": len(held), "held_failed": sum(a["outcome"] != "success" for a in held),
+            "unheld": len(unheld), "unheld_succeeded": sum(a["outcome"] == "success" for a in unheld)}
+
+
 def episode_verdicts(task: EpisodeTask) -> list[Verdicts]:
     """The twin's and the env's verdicts on every pick of one oracle episode; top-level for process pools."""
     import gymnasium as gym

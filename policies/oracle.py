@@ -510,6 +510,7 @@ class OraclePolicy(Policy):
             raise ValueError(f"top_k must be >= 1, got {top_k}")
         suction, library = self._context(info)
         self._note_outcome(info or {})
+        self.last_rehearsals = []
         if all(key in obs for key in LABEL_KEYS):
             return best_labelled(obs, top_k)
         truth = ground_truth(obs, library)

@@ -30,3 +30,23 @@ def test_agreement_counts_what_the_twin_foresaw():
 def test_a_bad_argument_is_one_line_and_exit_2(capsys):
     assert main(["--episodes", "0"]) == 2
     assert "episodes" in capsys.readouterr().err
+
+
+def test_the_clearance_summary_tells_rehearsed_picks_that_held_from_dead_ends():
+    from eval.clearance import EpisodeResult, format_table, summarise
+    from eval.twin_agreement import rehearsal_counts
+
+    log = [{"outcome": "success", "rehearsals": ["success"]},
+           {"outcome": "dropped", "phase": "lift", "rehearsals": ["dropped", "success"]},  # twin and cell parted
+           {"outcome": "success", "rehearsals": ["dropped", "dropped"]},  # a dead end the cell carried off
+           {"outcome": "dropped", "phase": "lift", "rehearsals": ["collision"]},
+           {"outcome": "success"}]  # not rehearsed
+    counts = rehearsal_counts([log])
+    assert counts == {"held": 2, "held_failed": 1, "unheld": 2, "unheld_succeeded": 1}
+    assert rehearsal_counts([[{"outcome": "success"}]]) is None
+    episode = EpisodeResult("mixed", "stacked", 0, 0, attempts=5, successes=3, parcels_placed=3, parcels_cleared=3,
+                            reason="cleared", outcomes={"success": 3, "dropped": 2}, replay=None, wall_time_s=1.0,
+                            attempt_log=log)
+    summary = summarise([episode])
+    assert summary["overall"]["rehearsals"] == counts
+    assert "2 picks held there, 1 of them failed here; 2 with none held there" in format_table(summary)
