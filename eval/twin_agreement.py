@@ -43,6 +43,8 @@ class Verdicts:
 
 @dataclass
 class Agreement:
+    """Every attempt's verdicts, and how often the twin's success-or-not matched the env's."""
+
     verdicts: list[Verdicts] = field(default_factory=list)
 
     @property
@@ -60,14 +62,15 @@ class Agreement:
 
 def rehearsal_counts(attempt_logs: list[list[dict[str, Any]]]) -> dict[str, int] | None:
     """How a rehearsing policy's picks (attempt records with ``rehearsals``, ``eval/clearance.py``) went in the
-    env: ``held`` picks whose last rehearsal succeeded, and ``held_failed`` of them the env failed (where twin and
-    cell part); ``unheld`` picks for which no rehearsal succeeded (a dead end: the ranking's first was made), and
-    ``unheld_succeeded`` of them the env carried off. None where no attempt was rehearsed."""
+    env: ``held`` picks made after a rehearsal that succeeded (the clean one, or the least loaded success where
+    none was clean, which may come before later failed rehearsals), and ``held_failed`` of them the env failed
+    (where twin and cell part); ``unheld`` picks for which no rehearsal succeeded (a dead end: the ranking's first
+    was made), and ``unheld_succeeded`` of them the env carried off. None where no attempt was rehearsed."""
     rehearsed = [a for log in attempt_logs for a in log if a.get("rehearsals")]
     if not rehearsed:
         return None
-    held = [a for a in rehearsed if a["rehearsals"][-1] == "success"]
-    unheld = [a for a in rehearsed if a["rehearsals"][-1] != "success"]
+    held = [a for a in rehearsed if "success" in a["rehearsals"]]
+    unheld = [a for a in rehearsed if "success" not in a["rehearsals"]]
     return {"held": len(held), "held_failed": sum(a["outcome"] != "success" for a in held),
             "unheld": len(unheld), "unheld_succeeded": sum(a["outcome"] == "success" for a in unheld)}
 
