@@ -510,7 +510,7 @@ class OraclePolicy(Policy):
             raise ValueError(f"top_k must be >= 1, got {top_k}")
         suction, library = self._context(info)
         self._note_outcome(info or {})
-        self.last_rehearsals = []
+        self.last_rehearsals = []  # filled by _rehearsed_first; empty where this decision raises before it
         if all(key in obs for key in LABEL_KEYS):
             return best_labelled(obs, top_k)
         truth = ground_truth(obs, library)
@@ -644,21 +644,29 @@ class OraclePolicy(Policy):
         for i in checked[:c.confirm_checks]:
             if planned(i):
                 return first(i, unreachable)
-        _, best = np.unique(owner[order], return_index=True)  # each parcel's best-ranked candidate
-        seen = set(owner[checked].tolist())
-        others = [int(i) for i in order[np.sort(best)] if int(owner[i]) not in seen]
-        for i in others[:c.reach_checks]:
+        for i in self._each_parcels_best(order, owner, set(owner[checked].tolist()))[:c.reach_checks]:
             if self.reach.reaches(line(i), -normals[i]) and planned(i):
                 return first(i, unreachable)
             unreachable.append(i)
-        # approaches spread in place and direction: farthest points of each candidate's point moved out along
-        # its normal (the pre-grasp side), so every face and tilt offered is asked, best-ranked first
-        approach = points[order] + c.spread_reach * normals[order]
-        spread = farthest_point_indices(approach, min(c.spread_checks, len(order))) if c.spread_checks else []
-        for i in (int(j) for j in order[spread] if int(j) not in checked[:c.confirm_checks]):
-            if planned(i):
+        for i in self._spread(order, points, normals, c.spread_checks):
+            if i not in checked[:c.confirm_checks] and planned(i):
                 return first(i, unreachable)
         return order
+
+    @staticmethod
+    def _each_parcels_best(order: np.ndarray, owner: np.ndarray, skip: set[int]) -> list[int]:
+        """Each parcel's best-ranked candidate, in rank order, but those of the parcels in ``skip``."""
+        _, best = np.unique(owner[order], return_index=True)
+        return [int(i) for i in order[np.sort(best)] if int(owner[i]) not in skip]
+
+    def _spread(self, order: np.ndarray, points: np.ndarray, normals: np.ndarray, n: int) -> list[int]:
+        """``n`` of the ranked candidates spread in place and direction, farthest first: farthest points of each
+        candidate's point moved ``spread_reach`` out along its normal (the pre-grasp side), so every face and
+        tilt offered is asked, best-ranked first."""
+        if n <= 0 or len(order) == 0:
+            return []
+        approach = points[order] + self.config.spread_reach * normals[order]
+        return [int(i) for i in order[farthest_point_indices(approach, min(n, len(order)))]]
 
     def _rehearsed_first(self, order: np.ndarray, points: np.ndarray, normals: np.ndarray, owner: np.ndarray
                          ) -> np.ndarray:
@@ -676,14 +684,11 @@ class OraclePolicy(Policy):
         so the rehearsals go on, and the least loaded success is taken if none is clean. Where none succeeds,
         the ranking stands."""
         c = self.config
-        self.last_rehearsals = []
         if c.rehearsals == 0 or len(order) == 0:
             return order
-        _, best = np.unique(owner[order], return_index=True)
-        others = [int(i) for i in order[np.sort(best)] if owner[i] != owner[order[0]]]
-        approach = points[order] + c.spread_reach * normals[order]
-        spread = [int(i) for i in order[farthest_point_indices(approach, min(c.rehearsals, len(order)))]]
-        fallback: tuple[float, int] | None = None  # the success with the smallest peak ratio, if none was clean
+        others = self._each_parcels_best(order, owner, {int(owner[order[0]])})
+        spread = self._spread(order, points, normals, c.rehearsals)
+        chosen, least = None, np.inf  # the least loaded success so far (a clean one ends the search)
         for n, i in enumerate(dict.fromkeys([int(order[0]), *others, *spread])):
             if n > 0 and self.twin.refusal(points[i], normals[i]) is not None:
                 continue  # the cell would not move for it (the first is rehearsed whatever: it is the fallback)
@@ -691,13 +696,13 @@ class OraclePolicy(Policy):
             self.last_rehearsals.append(result.outcome)
             if result.outcome == "success":
                 peak = max(result.peak_ratios.values(), default=0.0)
+                if peak < least:
+                    chosen, least = i, peak
                 if peak <= c.clean_peak:
-                    return np.concatenate([[i], order[order != i]])
-                if fallback is None or peak < fallback[0]:
-                    fallback = (peak, i)
+                    break
             if len(self.last_rehearsals) == c.rehearsals:
                 break
-        return order if fallback is None else np.concatenate([[fallback[1]], order[order != fallback[1]]])
+        return order if chosen is None else np.concatenate([[chosen], order[order != chosen]])
 
     @staticmethod
     def _real_mass_wrench(points: np.ndarray, normals: np.ndarray, owner: np.ndarray, truth: GroundTruth,
