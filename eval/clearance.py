@@ -175,6 +175,15 @@ def failure_detail(attempt: dict[str, Any]) -> str | None:
     return None if kind is None else kind + (f" ({', '.join(extra)})" if extra else "")
 
 
+def episode_env_kwargs(task: EpisodeTask) -> dict[str, Any]:
+    """The env's keywords for one episode of the grid: the config's own, the cell's pile and the attempt cap."""
+    cfg = task.config
+    kwargs = dict(cfg.env_kwargs, object_set=task.objects, layout=task.layout, num_parcels=cfg.num_parcels)
+    if cfg.max_attempts is not None:
+        kwargs["max_attempts"] = cfg.max_attempts
+    return kwargs
+
+
 def run_episode(task: EpisodeTask) -> EpisodeResult:
     """One closed-loop episode; top-level so process pools and Ray can ship it."""
     import gymnasium as gym
@@ -184,9 +193,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
     from policies.tool_check import ToolCheckConfig, ToolCheckedPolicy, tool_check_refusal
 
     cfg = task.config
-    env_kwargs = dict(cfg.env_kwargs, object_set=task.objects, layout=task.layout, num_parcels=cfg.num_parcels)
-    if cfg.max_attempts is not None:
-        env_kwargs["max_attempts"] = cfg.max_attempts
+    env_kwargs = episode_env_kwargs(task)
     if cfg.record_dir is not None:
         env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
     policy_kwargs = dict(cfg.policy_kwargs, **({"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}))

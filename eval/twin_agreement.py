@@ -17,7 +17,7 @@ import sys
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from eval.clearance import ClearanceConfig, EpisodeTask, episode_tasks
+from eval.clearance import ClearanceConfig, EpisodeTask, episode_env_kwargs, episode_tasks
 from parcelpick_env.assets.library import OBJECT_SETS
 from parcelpick_env.parallel import BACKENDS, parallel_map
 from parcelpick_env.scene.config import LAYOUTS
@@ -83,9 +83,7 @@ def episode_verdicts(task: EpisodeTask) -> list[Verdicts]:
     import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
     from policies.oracle import OracleConfig, OraclePolicy
 
-    cfg = task.config
-    env = gym.make("ParcelPick-v0", **cfg.env_kwargs, object_set=task.objects, layout=task.layout,
-                   num_parcels=cfg.num_parcels, obs_mode="state_dict")
+    env = gym.make("ParcelPick-v0", **episode_env_kwargs(task), obs_mode="state_dict")
     oracle = OraclePolicy(OracleConfig(rehearsals=0))
     out: list[Verdicts] = []
     try:
