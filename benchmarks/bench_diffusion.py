@@ -4,10 +4,15 @@ Prints a markdown table.
 
     .venv/bin/python benchmarks/bench_diffusion.py [--threads 2] [--sizes 4096 8192 16384] [--repeats 3]
     python benchmarks/bench_diffusion.py --device cuda [--checkpoint CKPT]   # on a lent GPU: the paper preset only
+    .venv/bin/python benchmarks/bench_diffusion.py --env-clouds 8   # the paper preset on ParcelPick-v0's own clouds
 
 With ``--device cuda`` the precompute still runs on the CPU (as in the policy) and the network on the GPU, timed
 with the device synchronised, in float32 and under bfloat16 autocast; ``--checkpoint`` times a trained model (its
 own config) instead of an untrained paper preset.
+
+With ``--env-clouds K`` it times the paper preset's ``policy.predict`` (decode 2,048, 20 DDIM steps) on K of the
+env's own 16,384-point observations (stacked piles of 10 and 30, every object set), float32 and bfloat16
+interleaved call by call, so both see the same machine state: issue 14's 200 ms goal is about this call.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from policies.diffusion.config import DiffusionConfig  # noqa: E402
 from policies.diffusion.model import build_model  # noqa: E402
 from policies.diffusion.neighbourhood import NeighbourhoodTransform, model_inputs  # noqa: E402
 from policies.diffusion.pointnet2 import fold_batchnorm  # noqa: E402
-from policies.diffusion.policy import PRECISIONS, DiffusionSuctionPolicy  # noqa: E402
+from policies.diffusion.policy import PRECISIONS, DiffusionSuctionPolicy, cpu_runs_bfloat16_natively  # noqa: E402
 from policies.diffusion.synthetic import synthetic_scene  # noqa: E402
 
 
@@ -153,6 +158,44 @@ def bench_deploy(cfg: DiffusionConfig, n: int, repeats: int) -> dict:
             "predict + trajectory (ms)": timed(lambda: traj.predict(obs), repeats), "peak RSS MB": peak_mb()}
 
 
+def env_clouds(count: int, points: int = 16384) -> list[dict[str, np.ndarray]]:
+    """``count`` ParcelPick-v0 observations at ``points`` points: stacked piles of 10 and 30, every object set."""
+    from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+    from parcelpick_env.assets.library import OBJECT_SETS
+
+    clouds = []
+    for i in range(count):
+        env = ParcelPickEnv(num_parcels=(10, 30)[i % 2], layout="stacked", object_set=OBJECT_SETS[i % len(OBJECT_SETS)],
+                            num_points=points)
+        obs, _ = env.reset(seed=i)
+        clouds.append({"points": obs["points"], "normals": obs["normals"]})
+        env.close()
+    return clouds
+
+
+def bench_env_clouds(clouds: list[dict[str, np.ndarray]], repeats: int, decode_points: int,
+                     config: DiffusionConfig | None = None) -> list[dict]:
+    """``config``'s (default: the paper preset's) predict on each cloud, ``repeats`` times, float32 and bfloat16
+    alternating call by call."""
+    model = build_model(config or DiffusionConfig())
+    policies = {p: DiffusionSuctionPolicy(model=model, record_trajectory=False, decode_points=decode_points, precision=p)
+                for p in PRECISIONS}
+    times: dict[str, list[float]] = {p: [] for p in PRECISIONS}
+    for cloud in clouds:
+        for policy in policies.values():
+            policy.predict(cloud)  # warm-up on this cloud's size
+        for _ in range(repeats):
+            for p, policy in policies.items():
+                times[p].append(1000 * _time(lambda: policy.predict(cloud)))
+    rows = []
+    for p, ms in times.items():
+        q = np.percentile(ms, [10, 50, 90])
+        rows.append({"precision": p, "clouds": len(clouds), "calls": len(ms), "predict median (ms)": float(q[1]),
+                     "p10 (ms)": float(q[0]), "p90 (ms)": float(q[2]),
+                     "calls <= 200 ms": f"{sum(t <= 200 for t in ms)}/{len(ms)}"})
+    return rows
+
+
 def bench_train(name: str, cfg: DiffusionConfig, batch_size: int, repeats: int) -> dict:
     t = NeighbourhoodTransform(cfg)
     samples = [t(synthetic_scene(np.random.default_rng(i), cfg.num_points)) for i in range(batch_size)]
@@ -200,7 +243,11 @@ def main() -> None:
     p.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                    help="cuda: only the paper preset's inference, the network on the GPU")
     p.add_argument("--checkpoint", help="with --device cuda: time this trained model instead of an untrained one")
+    p.add_argument("--env-clouds", type=int, default=0, metavar="K",
+                   help="only the paper preset's predict on K of ParcelPick-v0's 16,384-point observations")
     args = p.parse_args()
+    if args.env_clouds < 0:
+        p.error(f"--env-clouds must be >= 0, got {args.env_clouds}")
     global CLOCK
     if args.cpu_time:
         CLOCK = time.process_time
@@ -211,6 +258,15 @@ def main() -> None:
         rows = bench_cuda(DiffusionConfig(), max(args.repeats, 10), args.decode_points, args.checkpoint)
         print(f"### Diffusion-Suction inference on the GPU, B=1, precompute on {args.threads} CPU threads, wall "
               f"times in ms (median of {max(args.repeats, 10)})\n")
+        print(table(rows))
+        return
+
+    if args.env_clouds:
+        rows = bench_env_clouds(env_clouds(args.env_clouds), max(args.repeats, 5), args.decode_points)
+        print(f"### Diffusion-Suction paper preset (w=1.0, 20 DDIM steps, decode {args.decode_points}) policy.predict "
+              f"on ParcelPick-v0's 16,384-point clouds, B=1, {args.threads} torch threads, "
+              f"{'CPU' if args.cpu_time else 'wall'} ms; cpu capability {torch.backends.cpu.get_cpu_capability()}, "
+              f"bfloat16 native: {cpu_runs_bfloat16_natively()}\n")
         print(table(rows))
         return
 

@@ -1,10 +1,13 @@
-"""benchmarks/bench_diffusion.py's GPU table, run on the CPU so that it cannot rot between lent GPUs."""
+"""benchmarks/bench_diffusion.py's GPU table, run on the CPU so that it cannot rot between lent GPUs, and its table on
+the env's own clouds, run on tiny ones."""
 
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -31,3 +34,18 @@ def test_the_device_table_times_each_stage_and_sums_them(trained, tmp_path):
         assert r["total (decode 64)"] == pytest.approx(r["precompute (CPU)"] + r["encoder"]
                                                        + r[f"decoder x{steps} (64 pts)"])
         assert min(v for k, v in r.items() if isinstance(v, float)) > 0
+
+
+def test_the_env_cloud_table_times_both_precisions_on_every_cloud():
+    clouds = bench_diffusion.env_clouds(2, points=512)
+    assert [c["points"].shape for c in clouds] == [(512, 3), (512, 3)]
+    assert not np.array_equal(clouds[0]["points"], clouds[1]["points"])  # two piles, not one twice
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # bfloat16 is emulated on some CPUs: slow, not wrong
+        rows = bench_diffusion.bench_env_clouds(clouds, 3, 64, DiffusionConfig.tiny(inference_steps=2))
+    assert [r["precision"] for r in rows] == ["float32", "bfloat16"]
+    for r in rows:
+        assert r["clouds"] == 2 and r["calls"] == 6
+        assert 0 < r["p10 (ms)"] <= r["predict median (ms)"] <= r["p90 (ms)"]
+        fast, calls = map(int, r["calls <= 200 ms"].split("/"))
+        assert calls == 6 and 0 <= fast <= 6
