@@ -27,6 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHIPPED: dict[str, tuple[str, ...]] = {
     "diffusion": ("policies/diffusion/checkpoints/diffusion_suction.pt",),
     "diffusion_vote": ("policies/diffusion/checkpoints/centre_vote.pt",),  # the head; the model is diffusion's
+    "diffusion_hold": ("policies/hold/checkpoints/hold.pt",),  # the hold check; the model is diffusion's
     "cao": ("policies/cao/checkpoint.pt",),
     "dexnet": ("policies/dexnet/checkpoint.pt",),
     "sb3": ("policies/sb3/ppo_pixel.safetensors", "policies/sb3/ppo_pixel.zip"),  # the first that exists
