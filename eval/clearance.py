@@ -69,6 +69,9 @@ class ClearanceConfig:
     # under another; policies/exposure.py) by this, so the top layer goes first; 1.0 (the default): off. Measured
     # on the report's stacked episodes: no change overall (README, 'Where the stacked cells' attempts go')
     covered_factor: float = 1.0
+    # with the tool check, m: a passing pick this close to one that failed since the last success counts as not
+    # passing while another passes (policies/tool_check.py); 0: off
+    retry_radius: float = 0.0
     # record, per attempt, which parcel the pick took and whether others rested on it (eval/pick_audit.py: the
     # evaluator reads the true scene; the pick and the policy's input are unchanged)
     audit_picks: bool = False
@@ -96,6 +99,11 @@ class ClearanceConfig:
         check_covered_factor("ClearanceConfig", self.covered_factor)
         if self.covered_factor < 1.0 and not self.tool_check:
             raise ValueError("covered_factor < 1 re-ranks within the tool check, which is off (--no-tool-check)")
+        from policies.tool_check import check_retry_radius
+
+        check_retry_radius("ClearanceConfig", self.retry_radius)
+        if self.retry_radius > 0 and not self.tool_check:
+            raise ValueError("retry_radius > 0 works within the tool check, which is off (--no-tool-check)")
         clash = sorted(set(self.env_kwargs) & set(RESERVED_ENV_KWARGS))
         if clash:
             raise ValueError(f"env_kwargs may not set {clash}: use the ClearanceConfig fields instead")
@@ -199,7 +207,8 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
     policy_kwargs = dict(cfg.policy_kwargs, **({"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}))
     policy = make_policy(cfg.policy, **policy_kwargs)
     if cfg.tool_check and tool_check_refusal(policy) is None:
-        policy = ToolCheckedPolicy(policy, ToolCheckConfig(seal=cfg.seal_check, covered_factor=cfg.covered_factor))
+        policy = ToolCheckedPolicy(policy, ToolCheckConfig(seal=cfg.seal_check, covered_factor=cfg.covered_factor,
+                                                           retry_radius=cfg.retry_radius))
 
     start = time.perf_counter()
     env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads
@@ -418,6 +427,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with the tool check, multiply the score of a pick on a surface that something observed rises "
                         "above (a parcel under another; policies/exposure.py) by F in [0, 1], so the top layer goes "
                         "first; 1 is off")
+    p.add_argument("--retry-radius", type=float, default=0.0, metavar="M",
+                   help="with the tool check, do not go back within M metres of a pick that failed since the last "
+                        "success while another pick passes (policies/tool_check.py); 0 is off")
     p.add_argument("--audit-picks", action="store_true",
                    help="record per attempt which parcel the pick took and whether other parcels rested on it "
                         "(eval/pick_audit.py; the evaluator reads the true scene, the policy does not)")
@@ -447,6 +459,7 @@ def main(argv: list[str] | None = None) -> int:
                                  record_dir=args.record, checkpoint=args.checkpoint, policy_kwargs=policy_kwargs,
                                  max_attempts=args.max_attempts, tool_check=args.tool_check,
                                  seal_check=args.seal_check, covered_factor=args.covered_factor,
+                                 retry_radius=args.retry_radius,
                                  audit_picks=args.audit_picks)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

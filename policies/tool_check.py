@@ -20,11 +20,18 @@ miss` or `edge`). The paper's labels score the seal with a 10 mm cup, so a model
 
 With ``covered_factor`` below 1 (off by default) a passing pick on a surface that the observed pile rises above
 (``policies/exposure.py``: a parcel under another) has its score scaled by it, so the top layer goes first.
+
+With ``retry_radius`` above 0 (off by default) the cell does not go back where a pick failed while it has another
+passing pick: a candidate within that distance of a pick that failed since the last success (where the cup touched,
+read from the env's ``info``, else the pick the check chose) counts as not passing. A failed pick mostly leaves the
+pile as it was, so a policy that reads the same geometry takes the same pick again.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
+from numbers import Real
 from typing import Any, Mapping
 
 import numpy as np
@@ -59,6 +66,9 @@ class ToolCheckConfig:
     # has its score multiplied by this, so the top layer goes first; 1.0: not judged
     covered_factor: float = 1.0
     exposure: ExposureConfig = field(default_factory=ExposureConfig)
+    # m: a passing pick this close to one that failed since the last success counts as not passing, while another
+    # passes (the cell does not go back where it just failed); 0: off
+    retry_radius: float = 0.0
     suction: SuctionConfig = field(default_factory=lambda: EnvConfig().suction)  # the cell's cup, as shipped
     seal_threshold: float = field(default_factory=lambda: float(EnvConfig().grasp.seal_threshold))
 
@@ -68,6 +78,7 @@ class ToolCheckConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ToolCheckConfig.{name} must be an int >= 1, got {value!r}")
         check_covered_factor("ToolCheckConfig", self.covered_factor)
+        check_retry_radius("ToolCheckConfig", self.retry_radius)
         if not isinstance(self.exposure, ExposureConfig):
             raise ValueError(f"ToolCheckConfig.exposure must be an ExposureConfig, got {type(self.exposure).__name__}")
         if not isinstance(self.seal, bool):
@@ -79,6 +90,45 @@ class ToolCheckConfig:
                              f"got {self.suction.seal_model!r}")
         if not 0.0 <= self.seal_threshold <= 1.0:
             raise ValueError(f"ToolCheckConfig.seal_threshold must be in [0, 1], got {self.seal_threshold!r}")
+
+
+def check_retry_radius(owner: str, value: object) -> None:
+    """``value`` is a retry radius, a finite number of metres >= 0 (0: off); else one ValueError naming ``owner``."""
+    ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and float(value) >= 0.0
+    if not ok:
+        raise ValueError(f"{owner}.retry_radius must be a finite number of metres >= 0 (0: off), got {value!r}")
+
+
+class FailedPicks:
+    """Where the cell's picks failed since its last success, learnt from the env's ``info`` once per attempt."""
+
+    def __init__(self) -> None:
+        self.points = np.zeros((0, 3))
+        self._seen = 0
+
+    def clear(self) -> None:
+        self.points, self._seen = np.zeros((0, 3)), 0
+
+    def note(self, info: Mapping[str, Any] | None, chosen: np.ndarray | None) -> None:
+        """Read the last attempt's outcome from ``info`` (nothing if none, or if already read): a success forgets
+        every failed pick; a failure adds where the cup touched, else ``chosen`` (the pick that was offered)."""
+        attempts = int((info or {}).get("attempts", 0))
+        if info is None or "outcome" not in info or attempts <= self._seen:
+            return
+        self._seen = attempts
+        if info["outcome"] == "success":
+            self.points = np.zeros((0, 3))
+            return
+        where = np.asarray(info["contact_point"], dtype=np.float64) if info.get("contacted") else chosen
+        if where is not None:
+            self.points = np.vstack([self.points, np.asarray(where, dtype=np.float64).reshape(1, 3)])
+
+    def near(self, points: np.ndarray, radius: float) -> np.ndarray:
+        """(K,) bool: within ``radius`` of a failed pick."""
+        if len(self.points) == 0 or radius <= 0:
+            return np.zeros(len(points), dtype=bool)
+        gaps = np.linalg.norm(np.asarray(points, dtype=np.float64)[:, None] - self.points[None], axis=-1)
+        return gaps.min(axis=1) <= radius
 
 
 def observed_mesh(depth: np.ndarray, intrinsics: np.ndarray, extrinsics: np.ndarray, stride: int = 3
@@ -158,8 +208,9 @@ class ToolCheckedPolicy(Policy):
     """``inner``'s ranking with the cell's check applied to its first ``candidates``: a pick whose tool meets the
     observed scene (or, with ``seal``, whose cup would not seal) scores 0 (the suction quality is a product with
     its collision and seal scores), so it goes behind every passing one, in its old order, and ``act`` takes the
-    best passing pick (with none passing, the first as before). ``last_passed`` holds the verdicts of the last
-    call, in the returned order."""
+    best passing pick (with none passing, the first as before). With ``retry_radius`` a passing pick near one that
+    failed since the last success scores as a failing one while another passes. ``last_passed`` and
+    ``last_retried`` hold the last call's verdicts, in the returned order."""
 
     def __init__(self, inner: Policy, config: ToolCheckConfig | None = None):
         why = tool_check_refusal(inner)
@@ -173,18 +224,28 @@ class ToolCheckedPolicy(Policy):
         self.name = f"{inner.name}+tool_check"
         self.obs_mode = inner.obs_mode
         self.last_passed = np.zeros(0, dtype=bool)
+        self.last_retried = np.zeros(0, dtype=bool)
+        self.failed = FailedPicks()
+        self._offered: np.ndarray | None = None
 
     def reset(self, seed: int | None = None) -> None:
         self.inner.reset(seed)
+        self.failed.clear()
+        self._offered = None
 
     def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
                 top_k: int = 50) -> Candidates:
+        if self.config.retry_radius > 0:
+            self.failed.note(info, self._offered)
         ranked = self.inner.predict(obs, info, top_k=max(top_k, self.config.candidates))
         checked = min(len(ranked), self.config.candidates)
         passed = np.ones(len(ranked), dtype=bool)
         passed[:checked] = check_picks(obs, info, ranked.points[:checked], ranked.normals[:checked], self.config)
+        retried = passed & self.failed.near(ranked.points, self.config.retry_radius)
+        if not (passed & ~retried).any():  # every passing pick is where one failed: go back rather than give up
+            retried[:] = False
         floor = min(0.0, float(ranked.scores.min())) if len(ranked) else 0.0
-        scores = np.where(passed, ranked.scores, floor).astype(np.float32)
+        scores = np.where(passed & ~retried, ranked.scores, floor).astype(np.float32)
         if self.config.covered_factor < 1.0 and checked:
             exposed = np.ones(len(ranked), dtype=bool)
             exposed[:checked] = exposed_picks(obs, info, ranked.points[:checked], self.config.exposure)
@@ -192,4 +253,6 @@ class ToolCheckedPolicy(Policy):
             scores = np.where(passed & ~exposed, discounted, scores).astype(np.float32)
         order = np.argsort(-scores, kind="stable")[:top_k]
         self.last_passed = passed[order]
+        self.last_retried = retried[order]
+        self._offered = ranked.points[order[0]].astype(np.float64) if len(order) else None
         return Candidates(points=ranked.points[order], normals=ranked.normals[order], scores=scores[order])

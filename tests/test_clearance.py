@@ -133,6 +133,13 @@ def test_cli_covered_factor_out_of_range_exits_2_naming_it(capsys):
     assert "covered_factor must be a number in [0, 1]" in capsys.readouterr().err
 
 
+def test_cli_retry_radius_negative_or_without_the_tool_check_exits_2_naming_it(capsys):
+    assert main(["--policy", "random", "--retry-radius", "-0.05"]) == 2
+    assert "retry_radius must be a finite number of metres >= 0" in capsys.readouterr().err
+    assert main(["--policy", "random", "--retry-radius", "0.05", "--no-tool-check"]) == 2
+    assert "retry_radius > 0 works within the tool check" in capsys.readouterr().err
+
+
 def test_covered_factor_reaches_the_tool_check_and_is_recorded(monkeypatch):
     import policies.tool_check as tool_check
 
@@ -140,12 +147,14 @@ def test_covered_factor_reaches_the_tool_check_and_is_recorded(monkeypatch):
     real = tool_check.ToolCheckedPolicy.__init__
 
     def spy(self, inner, config=None):
-        seen.append(config.covered_factor)
+        seen.append((config.covered_factor, config.retry_radius))
         real(self, inner, config)
 
     monkeypatch.setattr(tool_check.ToolCheckedPolicy, "__init__", spy)
-    summary = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), covered_factor=0.5), progress=False)
-    assert seen == [0.5] and summary["config"]["covered_factor"] == 0.5
+    summary = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), covered_factor=0.5, retry_radius=0.04),
+                                 progress=False)
+    assert seen == [(0.5, 0.04)] and summary["config"]["covered_factor"] == 0.5
+    assert summary["config"]["retry_radius"] == 0.04
 
 
 def test_record_dir_writes_one_replay_per_episode(tmp_path: Path):

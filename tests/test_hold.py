@@ -138,7 +138,7 @@ def test_training_learns_a_separable_hold_and_records_where_it_came_from(tmp_pat
     record = checkpoint_provenance(out)
     assert record["seed"] == 0 and record["command"].startswith("python -m policies.hold.train --data")
     assert len(record["dataset_manifest_sha256"]) == 64 and record["source"] == "checkpoint"
-    assert meta["held_out_files"] == ["mixed-stacked-ep002.npz", "mixed-stacked-ep005.npz"]
+    assert meta["held_out_files"] == [f"{tmp_path.name}/mixed-stacked-ep002.npz", f"{tmp_path.name}/mixed-stacked-ep005.npz"]
     assert meta["validation"]["auc"] > 0.95
     assert "by_hold_minus_policy" in capsys.readouterr().out
     assert train.main(["--data", str(tmp_path / "nowhere")]) == 2
@@ -189,3 +189,4 @@ def test_the_policy_orders_its_first_candidates_by_the_hold_probability(tmp_path
     np.testing.assert_array_equal(ranked.points[20:], base.points[20:25])  # the rest behind, in the model's order
     with pytest.raises(ValueError, match="rerank"):
         DiffusionHoldPolicy(model=model, hold_net=logistic({}), rerank=0)
+

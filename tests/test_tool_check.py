@@ -100,6 +100,41 @@ def test_the_wrapped_policy_acts_on_its_best_clear_candidate_and_keeps_the_rest_
     np.testing.assert_allclose(first_only.scores, [0.8, 0.7, 0.6, 0.0])
 
 
+def test_with_a_retry_radius_the_cell_does_not_go_back_where_a_pick_just_failed(tall_box):
+    obs, info = tall_box
+    # the floor at -0.25 passes, and so do the floor 5 cm from it and the box top; 0.08 is blocked by the box
+    inner = _Fixed([[-0.25, 0.0, 0.0], [-0.25, 0.04, 0.0], [0.08, 0.0, 0.0], [0.15, 0.0, 0.30]], [0.9, 0.8, 0.7, 0.6])
+    policy = ToolCheckedPolicy(inner, ToolCheckConfig(retry_radius=0.05))
+    np.testing.assert_allclose(policy.act(obs, info)[:3], [-0.25, 0.0, 0.0])
+    dropped = dict(info, attempts=1, outcome="dropped", contacted=True, contact_point=np.array([-0.25, 0.01, 0.0]))
+    ranked = policy.predict(obs, dropped, top_k=4)
+    np.testing.assert_allclose(ranked.points[0], [0.15, 0.0, 0.30])  # both floor picks are within 5 cm of it
+    assert policy.last_retried.tolist() == [False, True, True, False] and policy.last_passed[:3].tolist() == [True] * 3
+    assert np.all(np.diff(ranked.scores) <= 0)
+    policy.predict(obs, dropped, top_k=4)
+    assert len(policy.failed.points) == 1  # one attempt, read once however often its info is seen
+    # a failure without contact (never reached) is placed where the check's own first pick was: the box top
+    unreached = dict(info, attempts=2, outcome="unreachable", contacted=False, contact_point=np.zeros(3))
+    again = policy.predict(obs, unreached, top_k=4)
+    np.testing.assert_allclose(policy.failed.points[-1], [0.15, 0.0, 0.30])
+    # every passing pick is near a failure now: the cell goes back rather than give up, in the policy's order
+    np.testing.assert_allclose(again.points[0], [-0.25, 0.0, 0.0])
+    assert not policy.last_retried.any()
+    policy.predict(obs, dict(info, attempts=3, outcome="success"), top_k=4)
+    assert len(policy.failed.points) == 0  # a success forgets the failures
+    policy.predict(obs, unreached, top_k=4)  # an older attempt's info changes nothing
+    assert len(policy.failed.points) == 0
+    policy.predict(obs, dict(info, attempts=4, outcome="dropped", contacted=True, contact_point=np.zeros(3)))
+    policy.reset(0)
+    assert len(policy.failed.points) == 0
+    off = ToolCheckedPolicy(inner)  # off by default: the same pick again
+    off.predict(obs, info)
+    np.testing.assert_allclose(off.predict(obs, dropped, top_k=4).points[0], [-0.25, 0.0, 0.0])
+    for bad in (-0.01, float("nan"), True, "5 cm"):
+        with pytest.raises(ValueError, match="retry_radius"):
+            ToolCheckConfig(retry_radius=bad)
+
+
 def test_the_tool_check_refuses_a_policy_without_a_depth_image_or_with_its_own_act():
     with pytest.raises(ValueError, match="obs_mode='state_dict'"):
         ToolCheckedPolicy(_Fixed([[0, 0, 0]], [1.0], obs_mode="state_dict"))

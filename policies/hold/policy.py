@@ -2,7 +2,7 @@
 is likeliest to hold goes first, judged from the observation (``features.hold_features``). Not in the paper.
 
 Among Diffusion-Suction's first six picks on the stacked piles its own score says nothing about which the cell holds
-(ROC-AUC 0.47 on held-out rehearsals, docs/hold_check.md), so the hold probability alone orders them; the
+(ROC-AUC 0.41 on held-out rehearsals, docs/hold_check.md), so the hold probability alone orders them; the
 candidates after them keep the model's order behind them."""
 
 from __future__ import annotations
@@ -41,21 +41,21 @@ class DiffusionHoldPolicy(DiffusionSuctionPolicy):
 
     def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
                 top_k: int = 50) -> Candidates:
+        """The model's first ``rerank`` candidates ordered by the hold probability (their score), the rest after
+        them in the model's order, with decreasing scores below the least hold."""
         ranked = super().predict(obs, info, top_k=max(top_k, self.rerank))
         if len(ranked) == 0:
             self.last_hold = np.zeros(0, dtype=np.float32)
             return ranked
-        points, normals = point_cloud(obs, "the hold check", drop_invalid=True)
         n = min(len(ranked), self.rerank)
-        hold = np.ones(len(ranked), dtype=np.float32)
+        points, normals = point_cloud(obs, "the hold check", drop_invalid=True)
         features = hold_features(points, normals, ranked.points[:n], ranked.normals[:n], ranked.scores[:n],
                                  workspace(info, "the hold check"))
-        hold[:n] = self.hold_net.hold_probability(features)
-        scores = ranked.scores.astype(np.float32)
-        rest = scores[n:]
-        if len(rest):  # behind the judged ones, in the model's order (scores descending, all below the least hold)
-            scores[n:] = rest / max(float(rest.max()), 1e-12) * (0.5 * float(hold[:n].min()))
-        scores[:n] = hold[:n]
-        order = np.argsort(-scores, kind="stable")[:top_k]
-        self.last_hold = hold[order]
-        return Candidates(points=ranked.points[order], normals=ranked.normals[order], scores=scores[order])
+        hold = self.hold_net.hold_probability(features)
+        by_hold = np.argsort(-hold, kind="stable")
+        order = np.concatenate([by_hold, np.arange(n, len(ranked))])[:top_k]
+        rest = len(ranked) - n
+        below = 0.5 * float(hold.min()) * (1.0 - np.arange(1, rest + 1) / (rest + 1))
+        scores = np.concatenate([hold[by_hold], below]).astype(np.float32)[:top_k]
+        self.last_hold = np.concatenate([hold[by_hold], np.ones(rest, dtype=np.float32)])[:top_k]
+        return Candidates(points=ranked.points[order], normals=ranked.normals[order], scores=scores)

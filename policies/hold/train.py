@@ -2,7 +2,7 @@
 
     python -m policies.hold.train --data data/hold --out policies/hold/checkpoints/hold.pt --seed 0
 
-Episodes are split, not picks: every ``--val-every``-th episode file (sorted by name) is held out. Printed on the
+Episodes are split, not picks: every ``--val-every``-th episode file of each folder (sorted by name) is held out. Printed on the
 held-out states: the ROC-AUC of the predicted hold (and of the policy's own score), and how often the pick each
 ranking takes first held on the twin: the policy's own first passing pick, the first by hold probability (what
 ``diffusion_hold`` takes), and by score x hold probability, paired over states with a bootstrap interval. That is
@@ -102,7 +102,7 @@ def data_sha256(files: list[Path]) -> str:
     """One hash over the episode files' names and bytes: which data a checkpoint was trained on."""
     h = hashlib.sha256()
     for path in files:
-        h.update(path.name.encode())
+        h.update(f"{path.parent.name}/{path.name}".encode())
         h.update(path.read_bytes())
     return h.hexdigest()
 
@@ -125,7 +125,7 @@ def report(val: PickSet, net: HoldNet) -> dict[str, object]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--data", required=True, help="folder of collect's .npz episode files")
+    p.add_argument("--data", required=True, nargs="+", help="folders of collect's .npz episode files")
     p.add_argument("--out", default=None, help="checkpoint to write (none: report only)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--hidden", type=int, default=32)
@@ -136,15 +136,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--val-every", type=int, default=5, help="every k-th episode file is held out; 0: none")
     args = p.parse_args(argv)
     started = time.perf_counter()
-    files = sorted(Path(args.data).glob("*.npz"))
-    if not files:
-        print(f"error: --data {args.data} holds no .npz episode files (run python -m policies.hold.collect)",
-              file=sys.stderr)
-        return 2
     if args.val_every < 0 or args.steps < 1 or args.hidden < 1 or args.layers < 0:
         print("error: --val-every must be >= 0, --steps and --hidden >= 1, --layers >= 0", file=sys.stderr)
         return 2
-    held_out = [f for i, f in enumerate(files) if args.val_every and i % args.val_every == args.val_every - 1]
+    files, held_out = [], []
+    for folder in args.data:
+        found = sorted(Path(folder).glob("*.npz"))
+        if not found:
+            print(f"error: --data {folder} holds no .npz episode files (run python -m policies.hold.collect)",
+                  file=sys.stderr)
+            return 2
+        files += found  # every k-th file of each folder held out, so each source is validated
+        held_out += [f for i, f in enumerate(found) if args.val_every and i % args.val_every == args.val_every - 1]
     train_files = [f for f in files if f not in held_out]
     train = load_picks(train_files)
     config = HoldNetConfig(hidden=args.hidden, layers=args.layers)
@@ -162,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
                       "wall_time_s": time.perf_counter() - started,
                       "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         metadata = {"provenance": provenance, "train_picks": int(len(train.held)),
-                    "held_out_files": [f.name for f in held_out],
+                    "held_out_files": [f"{f.parent.name}/{f.name}" for f in held_out],
                     "validation": json.loads(json.dumps(summary, default=lambda v: getattr(v, "__dict__", str(v))))}
         save_hold(args.out, net, metadata)
         print(f"wrote {args.out}")
