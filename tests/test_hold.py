@@ -160,6 +160,7 @@ def test_collect_rehearses_the_policys_passing_picks_and_records_the_env_step(tm
         assert set(d["twin_outcome"][rehearsed]) <= set(OUTCOMES) and set(d["env_outcome"]) <= set(OUTCOMES)
         assert np.all(d["cand_rank"][rehearsed] >= 0) and np.all(np.isnan(d["cand_scores"][~rehearsed]))
     assert collect.main(["--out", str(tmp_path), "--candidates", "0"]) == 2
+    assert collect.main(["--out", str(tmp_path), "--retry-radius", "-1"]) == 2  # the cell's rule, checked as clearance's
 
 
 def test_the_policy_orders_its_first_candidates_by_the_hold_probability(tmp_path):

@@ -31,6 +31,7 @@ class CollectTask:
     episode: EpisodeTask
     out: str
     candidates: int
+    retry_radius: float = 0.0  # the cell's retry rule in the tool check (policies/tool_check.py); 0: off
 
 
 def collect_episode(task: CollectTask) -> dict[str, Any]:
@@ -46,7 +47,8 @@ def collect_episode(task: CollectTask) -> dict[str, Any]:
     ep = task.episode
     cfg = ep.config
     env = gym.make("ParcelPick-v0", **episode_env_kwargs(ep), obs_mode="pointcloud")
-    policy = ToolCheckedPolicy(make_policy(cfg.policy, **cfg.policy_kwargs), ToolCheckConfig())
+    policy = ToolCheckedPolicy(make_policy(cfg.policy, **cfg.policy_kwargs),
+                               ToolCheckConfig(retry_radius=task.retry_radius))
     unwrapped = env.unwrapped
     twin = CellTwin(unwrapped.config)
     library = AssetLibrary.default(unwrapped.config.asset_seed)
@@ -106,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=10, help="episodes per object set (stacked piles)")
     p.add_argument("--parcels", type=int, default=10)
     p.add_argument("--candidates", type=int, default=RERANK, help="passing picks rehearsed per state")
+    p.add_argument("--retry-radius", type=float, default=0.0, metavar="M",
+                   help="the cell's retry rule in the tool check, as eval/clearance.py's; 0 is off")
     p.add_argument("--seed", type=int, default=1000, help="grid seed; the report's episodes use 0")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--backend", default="local", choices=BACKENDS)
@@ -116,13 +120,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = ClearanceConfig(policy=args.policy, objects=tuple(args.objects), layouts=("stacked",),
                                  episodes=args.episodes, num_parcels=args.parcels, seed=args.seed,
-                                 workers=args.workers, backend=args.backend)
+                                 workers=args.workers, backend=args.backend, retry_radius=args.retry_radius)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    tasks = [CollectTask(t, str(out), args.candidates) for t in episode_tasks(config)]
+    tasks = [CollectTask(t, str(out), args.candidates, args.retry_radius) for t in episode_tasks(config)]
     counts = list(parallel_map(collect_episode, tasks, workers=args.workers, backend=args.backend,
                                desc="rehearsing", progress=True))
     states = sum(c["states"] for c in counts)

@@ -108,6 +108,7 @@ def data_sha256(files: list[Path]) -> str:
 
 
 def report(val: PickSet, net: HoldNet) -> dict[str, object]:
+    """The held-out figures the module docstring lists; intervals are bootstrap over states."""
     p = net.hold_probability(val.features)
     score = val.features[:, 0]
     policy_first = first_held(val, -val.order.astype(np.float64))
