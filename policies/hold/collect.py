@@ -61,9 +61,9 @@ def collect_episode(task: CollectTask) -> dict[str, Any]:
         policy.reset(ep.seed)
         while info.get("reason") != "cleared":
             ranked = policy.predict(obs, info, top_k=50)
-            passing = np.flatnonzero(policy.last_passed)[:k]
             if len(ranked) == 0:
                 break
+            passing = np.flatnonzero(policy.last_passed)[:k]
             twin.sync(unwrapped.privileged_state(), library)
             outcome = np.full(k, "", dtype="<U16")
             condition = np.full(k, "", dtype="<U32")

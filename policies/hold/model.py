@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from parcelpick_env.config_checks import require_int, require_positive_ints
 from policies.checkpoint_io import load_weights, read_checkpoint, save_atomic
 from policies.hold.features import FEATURES
 
@@ -29,8 +30,8 @@ class HoldNetConfig:
         if tuple(self.features) != FEATURES:
             raise ValueError(f"HoldNetConfig.features must be {FEATURES} (what hold_features computes), "
                              f"got {tuple(self.features)}")
-        if self.hidden < 1 or self.layers < 0:
-            raise ValueError(f"HoldNetConfig needs hidden >= 1 and layers >= 0, got {self.hidden}, {self.layers}")
+        require_positive_ints(self, ("hidden",))
+        require_int("HoldNetConfig", "layers", self.layers, lo=0)
 
 
 class HoldNet(nn.Module):

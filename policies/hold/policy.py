@@ -12,6 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from parcelpick_env.config_checks import require_int
 from policies.base import Candidates
 from policies.diffusion.policy import DiffusionSuctionPolicy
 from policies.hold.features import hold_features
@@ -32,8 +33,7 @@ class DiffusionHoldPolicy(DiffusionSuctionPolicy):
     def __init__(self, checkpoint: str | os.PathLike | None = None, hold: str | os.PathLike | None = None,
                  hold_net: HoldNet | None = None, rerank: int = RERANK, **kwargs: Any) -> None:
         """``hold``: the hold check's checkpoint (default: the shipped one); ``hold_net`` an in-memory one (tests)."""
-        if isinstance(rerank, bool) or not isinstance(rerank, int) or rerank < 1:
-            raise ValueError(f"rerank must be an int >= 1, got {rerank!r}")
+        require_int("DiffusionHoldPolicy", "rerank", rerank, lo=1)
         self.hold_net = hold_net if hold_net is not None else load_hold(hold or DEFAULT_HOLD)[0]
         self.rerank = rerank
         self.last_hold = np.zeros(0, dtype=np.float32)

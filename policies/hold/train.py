@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.stats import rankdata
 
+from eval.label_physics import roc_auc
 from eval.stats import bootstrap_mean, format_interval, paired_difference
 from policies.hold.features import hold_features
 from policies.hold.model import HoldNet, HoldNetConfig, save_hold
@@ -58,16 +58,6 @@ def load_picks(files: list[Path]) -> PickSet:
     if not feats:
         raise ValueError(f"no rehearsed picks in {len(files)} files")
     return PickSet(np.concatenate(feats), np.concatenate(held), np.concatenate(state), np.concatenate(order))
-
-
-def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
-    """Mann-Whitney ROC-AUC (ties counted half); NaN without both classes."""
-    labels = labels.astype(bool)
-    pos, neg = int(labels.sum()), int((~labels).sum())
-    if pos == 0 or neg == 0:
-        return float("nan")
-    ranks = rankdata(scores)
-    return float((ranks[labels].sum() - pos * (pos + 1) / 2) / (pos * neg))
 
 
 def first_held(picks: PickSet, ranking: np.ndarray) -> np.ndarray:
