@@ -70,8 +70,9 @@ class ClearanceConfig:
     # on the report's stacked episodes: no change overall (README, 'Where the stacked cells' attempts go')
     covered_factor: float = 1.0
     # with the tool check, m: a passing pick this close to one that failed since the last success counts as not
-    # passing while another passes (policies/tool_check.py); 0: off
-    retry_radius: float = 0.0
+    # passing while another passes (policies/tool_check.py); 0: off; None: the cell's own (RETRY_RADIUS, 0.05 m),
+    # which leaves a run without the tool check valid
+    retry_radius: float | None = None
     # record, per attempt, which parcel the pick took and whether others rested on it (eval/pick_audit.py: the
     # evaluator reads the true scene; the pick and the policy's input are unchanged)
     audit_picks: bool = False
@@ -101,8 +102,9 @@ class ClearanceConfig:
             raise ValueError("covered_factor < 1 re-ranks within the tool check, which is off (--no-tool-check)")
         from policies.tool_check import check_retry_radius
 
-        check_retry_radius("ClearanceConfig", self.retry_radius)
-        if self.retry_radius > 0 and not self.tool_check:
+        if self.retry_radius is not None:
+            check_retry_radius("ClearanceConfig", self.retry_radius)
+        if self.retry_radius and not self.tool_check:
             raise ValueError("retry_radius > 0 works within the tool check, which is off (--no-tool-check)")
         clash = sorted(set(self.env_kwargs) & set(RESERVED_ENV_KWARGS))
         if clash:
@@ -208,7 +210,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
     policy = make_policy(cfg.policy, **policy_kwargs)
     if cfg.tool_check and tool_check_refusal(policy) is None:
         policy = ToolCheckedPolicy(policy, ToolCheckConfig(seal=cfg.seal_check, covered_factor=cfg.covered_factor,
-                                                           retry_radius=cfg.retry_radius))
+                                                           retry_radius=retry_radius(cfg)))
 
     start = time.perf_counter()
     env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads
@@ -379,7 +381,7 @@ def evaluate_clearance(config: ClearanceConfig, progress: bool = True) -> dict[s
     summary = summarise(results)
     summary["episodes"] = [asdict(r) for r in results]
     summary["config"] = {k: v for k, v in asdict(config).items()}
-    summary.update(tool_check_flags(config))
+    summary.update(tool_check_settings(config))
     return summary
 
 
@@ -391,13 +393,34 @@ def tool_check_applies(config: ClearanceConfig) -> bool:
     return config.tool_check and tool_check_refusal(policy_class(config.policy)) is None
 
 
-CHECK_FLAGS = ("tool_check", "seal_check")  # what a summary records of the tool check its episodes ran through
+def retry_radius(config: ClearanceConfig) -> float:
+    """The retry rule's radius the tool check runs with (m; 0: off): ``config.retry_radius``, else the cell's own."""
+    if config.retry_radius is not None:
+        return float(config.retry_radius)
+    from policies.tool_check import RETRY_RADIUS
+
+    return RETRY_RADIUS
 
 
-def tool_check_flags(config: ClearanceConfig) -> dict[str, bool]:
-    """What a summary records of the check its episodes ran through (``CHECK_FLAGS``)."""
+# what a summary records of the tool check its episodes ran through: whether it ran, with the seal, and the retry
+# rule's radius (0 where it did not run)
+CHECK_SETTINGS = ("tool_check", "seal_check", "retry_radius")
+
+
+def tool_check_settings(config: ClearanceConfig) -> dict[str, bool | float]:
+    """What a summary records of the check its episodes ran through (``CHECK_SETTINGS``)."""
     applies = tool_check_applies(config)
-    return dict(zip(CHECK_FLAGS, (applies, applies and config.seal_check)))
+    return dict(zip(CHECK_SETTINGS, (applies, applies and config.seal_check, retry_radius(config) if applies else 0.0)))
+
+
+def check_line(summary: dict[str, Any]) -> str:
+    """The tool check a summary's episodes ran through, in words."""
+    if not summary["tool_check"]:
+        return "off"
+    seal = ", with the seal" if summary["seal_check"] else ""
+    radius = summary.get("retry_radius") or 0.0
+    retry = f", not going back within {radius:g} m of a failed pick" if radius > 0 else ", no retry rule"
+    return f"on{seal}{retry}"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -427,9 +450,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with the tool check, multiply the score of a pick on a surface that something observed rises "
                         "above (a parcel under another; policies/exposure.py) by F in [0, 1], so the top layer goes "
                         "first; 1 is off")
-    p.add_argument("--retry-radius", type=float, default=0.0, metavar="M",
+    p.add_argument("--retry-radius", type=float, default=None, metavar="M",
                    help="with the tool check, do not go back within M metres of a pick that failed since the last "
-                        "success while another pick passes (policies/tool_check.py); 0 is off")
+                        "success while another pick passes (policies/tool_check.py); 0 is off (default: the "
+                        "cell's 0.05)")
     p.add_argument("--audit-picks", action="store_true",
                    help="record per attempt which parcel the pick took and whether other parcels rested on it "
                         "(eval/pick_audit.py; the evaluator reads the true scene, the policy does not)")
@@ -467,8 +491,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = evaluate_clearance(config)
     print(f"\nClosed-loop clearance, policy {config.policy!r}: R_grasp / R_object (%)\n")
     print(format_table(summary, config.objects, config.layouts))
-    print("Tool check (policies/tool_check.py): " + ("off" if not summary["tool_check"]
-                                                     else "on, with the seal" if summary["seal_check"] else "on"))
+    print("Tool check (policies/tool_check.py): " + check_line(summary))
     replays = [e["replay"] for e in summary["episodes"] if e["replay"]]
     if replays:
         print(f"\nReplays ({len(replays)}): open one with `rerun {replays[0]}`")

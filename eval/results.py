@@ -41,7 +41,7 @@ from typing import Any
 if __package__ in (None, ""):  # allow `python eval/results.py` as well as `python -m eval.results`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from eval.clearance import CHECK_FLAGS, LAYOUTS, OBJECT_SETS, EpisodeResult, summarise  # noqa: E402
+from eval.clearance import CHECK_SETTINGS, LAYOUTS, OBJECT_SETS, EpisodeResult, summarise  # noqa: E402
 from eval.report import orchestration  # noqa: E402
 from eval.report.config import DEFAULT_POLICIES, DIFFUSION, PAPER_COMPAT_POLICIES, ReportConfig  # noqa: E402
 from eval.report.markdown import write_report  # noqa: E402
@@ -169,7 +169,7 @@ def _clearance_part(name: str, report: ReportConfig, objects: str, layout: str, 
         if summary is None:
             return {"episodes": None, "error": error}
         return {"episodes": summary["episodes"], "error": error,
-                "checks": {k: summary.get(k) for k in CHECK_FLAGS}}  # as this cell ran: the report says so
+                "checks": {k: summary.get(k) for k in CHECK_SETTINGS}}  # as this cell ran: the report says so
     return run
 
 
@@ -179,7 +179,7 @@ def cell_checks(name: str, cells: Sequence[dict[str, Any]]) -> tuple[dict[str, A
     A cell finished before the cells recorded them is unknown (None, so the report claims nothing); cells that ran
     with different checks (parts kept from before the check changed, say) cannot be pooled into one row."""
     found = {json.dumps(c.get("checks"), sort_keys=True) for c in cells}
-    unknown = dict.fromkeys(CHECK_FLAGS)
+    unknown = dict.fromkeys(CHECK_SETTINGS)
     if len(found) > 1:
         shown = sorted(f.replace("null", "not recorded") for f in found)
         return unknown, (f"its cells ran with different tool checks ({'; '.join(shown)}): "

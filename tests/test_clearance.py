@@ -6,11 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
+from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, check_line, episode_tasks,
                             evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise,
-                            tool_check_applies, tool_check_flags)
+                            tool_check_applies, tool_check_settings)
 from fresh_process import in_fresh_process
 from parcelpick_env.camera.config import CameraConfig
+from policies.tool_check import RETRY_RADIUS
 
 # Two parcels, a tiny camera and cloud, three attempts: a few seconds per episode on one core.
 TINY = dict(policy="random", objects=("rectangular",), layouts=("scattered",), episodes=1, num_parcels=2,
@@ -115,12 +116,14 @@ def test_cli_unknown_policy_exits_2_with_message(capsys):
 
 def test_episodes_run_with_the_tool_check_unless_it_is_off_or_the_policy_is_the_oracle():
     on = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=2)), progress=False)
-    assert on["tool_check"] is True and on["seal_check"] is True
+    assert on["tool_check"] is True and on["seal_check"] is True and on["retry_radius"] == RETRY_RADIUS > 0
     assert on["overall"]["outcomes"].get("invalid_action", 0) == 0
     off = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=1), tool_check=False), progress=False)
-    assert off["tool_check"] is False and off["seal_check"] is False
+    assert off["tool_check"] is False and off["seal_check"] is False and off["retry_radius"] == 0.0
     assert tool_check_applies(ClearanceConfig(**dict(TINY, policy="oracle"))) is False
-    assert tool_check_flags(ClearanceConfig(**TINY, seal_check=False)) == {"tool_check": True, "seal_check": False}
+    assert tool_check_settings(ClearanceConfig(**dict(TINY, policy="oracle")))["retry_radius"] == 0.0
+    assert tool_check_settings(ClearanceConfig(**TINY, seal_check=False, retry_radius=0.0)) == {
+        "tool_check": True, "seal_check": False, "retry_radius": 0.0}
 
 
 def test_cli_bad_value_exits_2(capsys):
@@ -138,6 +141,14 @@ def test_cli_retry_radius_negative_or_without_the_tool_check_exits_2_naming_it(c
     assert "retry_radius must be a finite number of metres >= 0" in capsys.readouterr().err
     assert main(["--policy", "random", "--retry-radius", "0.05", "--no-tool-check"]) == 2
     assert "retry_radius > 0 works within the tool check" in capsys.readouterr().err
+    ClearanceConfig(**TINY, tool_check=False)  # the cell's own radius (None) leaves a run without the check valid
+
+
+def test_check_line_says_which_retry_rule_ran():
+    assert check_line({"tool_check": True, "seal_check": True, "retry_radius": 0.05}) == (
+        "on, with the seal, not going back within 0.05 m of a failed pick")
+    assert check_line({"tool_check": True, "seal_check": False, "retry_radius": 0.0}) == "on, no retry rule"
+    assert check_line({"tool_check": False, "seal_check": False, "retry_radius": 0.0}) == "off"
 
 
 def test_covered_factor_reaches_the_tool_check_and_is_recorded(monkeypatch):

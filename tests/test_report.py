@@ -109,7 +109,10 @@ def test_each_clearance_table_says_whether_the_method_acted_through_the_tool_che
     assert "whose cup seals on it" not in md
     report["policies"]["diffusion"]["clearance"]["seal_check"] = True
     md = write_report(report, tmp_path / "seal" / "RESULTS.md", tmp_path / "seal" / "figs")["markdown"].read_text()
-    assert "clear of the observed scene and whose cup seals on it" in md
+    assert "clear of the observed scene and whose cup seals on it" in md and "retry rule" not in md  # not recorded
+    report["policies"]["diffusion"]["clearance"]["retry_radius"] = 0.0
+    md = write_report(report, tmp_path / "none" / "RESULTS.md", tmp_path / "none" / "figs")["markdown"].read_text()
+    assert "on it (`policies/tool_check.py`). No retry rule." in md
     report["policies"]["diffusion"]["clearance"].update(tool_check=False, config={"tool_check": False})
     md = write_report(report, tmp_path / "off" / "RESULTS.md", tmp_path / "off" / "figs")["markdown"].read_text()
     assert "Acting on its top candidate as ranked (`--no-tool-check`)" in md and "through the cell's" not in md

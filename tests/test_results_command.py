@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from eval import results
-from eval.clearance import ClearanceConfig, EpisodeResult, attempt_record, summarise, tool_check_flags
+from eval.clearance import ClearanceConfig, EpisodeResult, attempt_record, summarise, tool_check_settings
 from eval.metrics import aggregate_ap, scene_ap
 from eval.report import orchestration
 from eval.report.config import ReportConfig
@@ -63,7 +63,7 @@ def _fake_clearance(calls: Counter, interrupt_at: str | None):
                     for e in range(config.episodes)]
         summary = summarise(episodes)
         summary["episodes"] = [asdict(e) for e in episodes]
-        summary.update(tool_check_flags(ClearanceConfig(policy=name)))  # as evaluate_clearance records it
+        summary.update(tool_check_settings(ClearanceConfig(policy=name)))  # as evaluate_clearance records it
         return summary, None
     return run
 
@@ -118,7 +118,8 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     assert len(dump["policies"]["cao"]["clearance"]["episodes"]) == 4  # both cells, 2 episodes each
     clearance = dump["policies"]["cao"]["clearance"]
     assert clearance["tool_check"] is True and clearance["seal_check"] is True  # as the cells ran them
-    assert "Acting through the cell's tool check" in md
+    assert clearance["retry_radius"] == 0.05
+    assert "Acting through the cell's tool check" in md and "does not go back within 0.05 m" in md
     assert "| x | 1 |" in (bench_dir / "RESULTS.md").read_text()
     # Nothing left to do: a third run only re-renders the pages.
     before = Counter(calls)
@@ -130,9 +131,11 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
 def test_the_report_claims_the_tool_check_its_cells_recorded_and_refuses_to_pool_cells_that_differ():
     seal, tool_only = {"tool_check": True, "seal_check": True}, {"tool_check": True, "seal_check": False}
     assert results.cell_checks("cao", [{"checks": seal}, {"checks": seal}]) == (seal, None)
-    unknown = {"tool_check": None, "seal_check": None}
+    unknown = {"tool_check": None, "seal_check": None, "retry_radius": None}
     assert results.cell_checks("cao", [{"episodes": []}, {}]) == (unknown, None)  # finished before cells recorded
-    for cells in ([{"checks": seal}, {"checks": tool_only}], [{"checks": seal}, {}]):
+    retried = dict(seal, retry_radius=0.05)
+    for cells in ([{"checks": seal}, {"checks": tool_only}], [{"checks": seal}, {}],
+                  [{"checks": retried}, {"checks": seal}], [{"checks": retried}, {"checks": dict(seal, retry_radius=0.0)}]):
         flags, why = results.cell_checks("cao", cells)
         assert flags == unknown and "different tool checks" in why and "--force clearance/cao" in why
     assert "not recorded" in results.cell_checks("cao", [{"checks": seal}, {}])[1]

@@ -127,7 +127,10 @@ def test_with_a_retry_radius_the_cell_does_not_go_back_where_a_pick_just_failed(
     policy.predict(obs, dict(info, attempts=4, outcome="dropped", contacted=True, contact_point=np.zeros(3)))
     policy.reset(0)
     assert len(policy.failed.points) == 0
-    off = ToolCheckedPolicy(inner)  # off by default: the same pick again
+    by_default = ToolCheckedPolicy(inner)  # the cell's rule is on by default
+    by_default.predict(obs, info)
+    np.testing.assert_allclose(by_default.predict(obs, dropped, top_k=4).points[0], [0.15, 0.0, 0.30])
+    off = ToolCheckedPolicy(inner, ToolCheckConfig(retry_radius=0.0))  # 0 turns it off: the same pick again
     off.predict(obs, info)
     np.testing.assert_allclose(off.predict(obs, dropped, top_k=4).points[0], [-0.25, 0.0, 0.0])
     for bad in (-0.01, float("nan"), True, "5 cm"):
