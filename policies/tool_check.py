@@ -25,7 +25,7 @@ With ``retry_radius`` above 0 (0.05 m by default, ``RETRY_RADIUS``; 0 turns it o
 a pick failed while it has another passing pick: a candidate within that distance of a pick that failed since the
 last success (where the cup touched, read from the env's ``info``, else the pick the check chose) counts as not
 passing. A failed pick mostly leaves the pile as it was, so a policy that reads the same geometry takes the same
-pick again; on the report's stacked piles the rule raised every policy's R_object (docs/evaluation.md).
+pick again; on the report's piles the rule raised R_object for every policy it wraps but random (docs/evaluation.md).
 """
 
 from __future__ import annotations
