@@ -6,7 +6,8 @@ Prints two markdown tables:
   CPU time (median), simulated steps, and how many piles ended at rest;
 - ``ParcelPickEnv.reset`` at ``--reset-parcels`` stacked parcels (pile build, arm, settle against the
   arm, first capture at the env's default 640x480 camera): median wall time, and the pile build's share.
-Run: ``.venv/bin/python benchmarks/bench_scene.py [--runs 5] [--objects mixed] [--reset-runs 3]``.
+Run: ``.venv/bin/python benchmarks/bench_scene.py [--runs 5] [--objects mixed] [--reset-runs 3]``; ``--wall-height``,
+``--layouts`` and ``--counts`` ask what another tote would keep (``--wall-height 0.5 --layouts stacked --counts 50``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ if __package__ in (None, ""):
 from parcelpick_env.assets.library import OBJECT_SETS, AssetLibrary  # noqa: E402
 from parcelpick_env.scene.config import LAYOUTS, PileConfig  # noqa: E402
 from parcelpick_env.scene.pile import build_pile  # noqa: E402
+from parcelpick_env.scene.scene import BinSpec  # noqa: E402
 from parcelpick_env.sim.config import SimConfig  # noqa: E402
 from parcelpick_env.sim.simulator import Simulator  # noqa: E402
 
@@ -37,13 +39,14 @@ def _timed(fn):
     return out, time.perf_counter() - wall, time.process_time() - cpu
 
 
-def _pile_rows(object_sets: list[str], runs: int, library: AssetLibrary) -> list[str]:
+def _pile_rows(object_sets: list[str], runs: int, library: AssetLibrary, spec: BinSpec,
+               layouts: tuple[str, ...] = LAYOUTS, counts: tuple[int, ...] = COUNTS) -> list[str]:
     rows = []
     with Simulator(SimConfig(egl_rendering=False)) as sim:
         for object_set in object_sets:
-            for layout in LAYOUTS:
-                for n in COUNTS:
-                    config = PileConfig(num_parcels=n, layout=layout, object_set=object_set)
+            for layout in layouts:
+                for n in counts:
+                    config = PileConfig(num_parcels=n, layout=layout, object_set=object_set, bin=spec)
                     kept, skipped, lost, walls, cpus, steps, rest = [], [], [], [], [], [], 0
                     for seed in range(runs):
                         scene, wall, cpu = _timed(lambda: build_pile(sim, config, seed=seed, library=library))
@@ -99,12 +102,21 @@ def main() -> None:
     parser.add_argument("--objects", default="mixed", help=f"comma-separated object sets, or 'all' ({OBJECT_SETS})")
     parser.add_argument("--reset-parcels", type=int, default=30)
     parser.add_argument("--reset-runs", type=int, default=3, help="env resets timed (0 skips the env)")
+    parser.add_argument("--wall-height", type=float, default=BinSpec().wall_height,
+                        help="the tote's wall height (m) for the pile rows; the env's reset keeps the cell's own")
+    parser.add_argument("--layouts", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
+    parser.add_argument("--counts", nargs="+", type=int, default=list(COUNTS), help="parcels asked")
     args = parser.parse_args()
     object_sets = list(OBJECT_SETS) if args.objects == "all" else args.objects.split(",")
+    try:
+        spec = BinSpec(wall_height=args.wall_height)
+    except ValueError as exc:
+        parser.error(f"--wall-height: {exc}")
 
     library = AssetLibrary.default(0)
-    rows = _pile_rows(object_sets, args.runs, library)
-    print(f"\n### Piles: parcels kept against parcels asked ({args.runs} seeds each)\n")
+    rows = _pile_rows(object_sets, args.runs, library, spec, tuple(args.layouts), tuple(args.counts))
+    print(f"\n### Piles: parcels kept against parcels asked ({args.runs} seeds each; tote "
+          f"{spec.inner_size[0]:.2f} x {spec.inner_size[1]:.2f} x {spec.wall_height:.2f} m)\n")
     print("| object set | layout | asked | kept (mean) | kept (range) | skipped | lost | build+settle wall (s) | "
           "CPU (s) | sim steps | at rest |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
