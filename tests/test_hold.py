@@ -163,6 +163,13 @@ def test_collect_rehearses_the_policys_passing_picks_and_records_the_env_step(tm
     assert collect.main(["--out", str(tmp_path), "--retry-radius", "-1"]) == 2  # the cell's rule, checked as clearance's
 
 
+def test_collect_rehearses_only_picks_the_cell_would_take():
+    passed = np.array([True, False, True, True, True])
+    retried = np.array([False, False, True, False, False])  # the retry rule passes over row 2
+    assert collect.rehearsal_candidates(passed, retried, 2).tolist() == [0, 3]
+    assert collect.rehearsal_candidates(passed, np.zeros(5, dtype=bool), 6).tolist() == [0, 2, 3, 4]
+
+
 def test_the_policy_orders_its_first_candidates_by_the_hold_probability(tmp_path):
     from parcelpick_env.camera.config import CameraConfig
     from parcelpick_env.envs.parcel_pick import ParcelPickEnv

@@ -31,7 +31,15 @@ class CollectTask:
     episode: EpisodeTask
     out: str
     candidates: int
-    retry_radius: float = 0.0  # the cell's retry rule in the tool check (policies/tool_check.py); 0: off
+    # the cell's retry rule in the tool check (policies/tool_check.py); 0: off, as the shipped hold check's data
+    # were collected (policies/hold/checkpoints/hold.pt records the command)
+    retry_radius: float = 0.0
+
+
+def rehearsal_candidates(passed: np.ndarray, retried: np.ndarray, k: int) -> np.ndarray:
+    """Rows of the tool-checked ranking to rehearse: its first ``k`` picks that pass and that the retry rule does
+    not pass over (those the cell would take; ``ToolCheckedPolicy.last_passed`` and ``last_retried``)."""
+    return np.flatnonzero(np.asarray(passed, dtype=bool) & ~np.asarray(retried, dtype=bool))[:k]
 
 
 def collect_episode(task: CollectTask) -> dict[str, Any]:
@@ -63,7 +71,7 @@ def collect_episode(task: CollectTask) -> dict[str, Any]:
             ranked = policy.predict(obs, info, top_k=50)
             if len(ranked) == 0:
                 break
-            passing = np.flatnonzero(policy.last_passed)[:k]
+            passing = rehearsal_candidates(policy.last_passed, policy.last_retried, k)
             twin.sync(unwrapped.privileged_state(), library)
             outcome = np.full(k, "", dtype="<U16")
             condition = np.full(k, "", dtype="<U32")
