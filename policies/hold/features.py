@@ -43,9 +43,9 @@ def hold_features(points: np.ndarray, normals: np.ndarray, picks: np.ndarray, pi
     z = points[:, 2]
     out[:, 0] = np.asarray(scores, dtype=np.float32).reshape(-1)
     out[:, 1] = z.max() - picks[:, 2]
-    flat = cKDTree(points[:, :2])
+    flat, pick_tree = cKDTree(points[:, :2]), cKDTree(picks[:, :2])
     for i, radius in enumerate(RADII):
-        pairs = cKDTree(picks[:, :2]).sparse_distance_matrix(flat, radius, output_type="ndarray")
+        pairs = pick_tree.sparse_distance_matrix(flat, radius, output_type="ndarray")
         rise = np.zeros(len(picks))
         np.maximum.at(rise, pairs["i"], z[pairs["j"]] - picks[pairs["i"], 2])
         near = np.bincount(pairs["i"], minlength=len(picks))
