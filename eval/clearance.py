@@ -19,7 +19,7 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from parcelpick_env.envs.grasp import OUTCOMES  # noqa: E402  (one list of pick 
 from parcelpick_env.envs.parcel_pick import NO_BODY  # noqa: E402  (info["failure"]["body"] when none)
 from eval.stats import bootstrap_ratio, format_interval  # noqa: E402
 from parcelpick_env.parallel import BACKENDS, parallel_map  # noqa: E402
+
+if TYPE_CHECKING:  # the policies import torch and the suction stack: loaded where an episode runs
+    from policies.base import Policy
 
 OBJECT_SETS: tuple[str, ...] = ("rectangular", "planar", "cylindrical", "mixed")
 LAYOUTS: tuple[str, ...] = ("scattered", "stacked")  # the paper's Table V column order
@@ -194,23 +197,32 @@ def episode_env_kwargs(task: EpisodeTask) -> dict[str, Any]:
     return kwargs
 
 
-def run_episode(task: EpisodeTask) -> EpisodeResult:
-    """One closed-loop episode; top-level so process pools and Ray can ship it."""
-    import gymnasium as gym
-
-    import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
-    from policies.registry import make_policy, obs_mode_of
+def episode_policy(cfg: ClearanceConfig) -> Policy:
+    """The policy an episode acts with: ``cfg.policy`` with its checkpoint and keywords, through the cell's tool check
+    (with ``cfg``'s seal, covered factor and retry radius) wherever the check applies."""
+    from policies.registry import make_policy
     from policies.tool_check import ToolCheckConfig, ToolCheckedPolicy, tool_check_refusal
 
-    cfg = task.config
-    env_kwargs = episode_env_kwargs(task)
-    if cfg.record_dir is not None:
-        env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
     policy_kwargs = dict(cfg.policy_kwargs, **({"checkpoint": cfg.checkpoint} if cfg.checkpoint else {}))
     policy = make_policy(cfg.policy, **policy_kwargs)
     if cfg.tool_check and tool_check_refusal(policy) is None:
         policy = ToolCheckedPolicy(policy, ToolCheckConfig(seal=cfg.seal_check, covered_factor=cfg.covered_factor,
                                                            retry_radius=retry_radius(cfg)))
+    return policy
+
+
+def run_episode(task: EpisodeTask) -> EpisodeResult:
+    """One closed-loop episode; top-level so process pools and Ray can ship it."""
+    import gymnasium as gym
+
+    import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
+    from policies.registry import obs_mode_of
+
+    cfg = task.config
+    env_kwargs = episode_env_kwargs(task)
+    if cfg.record_dir is not None:
+        env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
+    policy = episode_policy(cfg)
 
     start = time.perf_counter()
     env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads

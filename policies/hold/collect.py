@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from eval.clearance import ClearanceConfig, EpisodeTask, episode_env_kwargs, episode_tasks
+from eval.clearance import ClearanceConfig, EpisodeTask, episode_env_kwargs, episode_policy, episode_tasks
 from parcelpick_env.assets.library import OBJECT_SETS
 from parcelpick_env.parallel import BACKENDS, parallel_map
 from policies.hold.policy import RERANK
@@ -31,9 +31,6 @@ class CollectTask:
     episode: EpisodeTask
     out: str
     candidates: int
-    # the cell's retry rule in the tool check (policies/tool_check.py); 0: off, as the shipped hold check's data
-    # were collected (policies/hold/checkpoints/hold.pt records the command)
-    retry_radius: float = 0.0
 
 
 def rehearsal_candidates(passed: np.ndarray, retried: np.ndarray, k: int) -> np.ndarray:
@@ -49,14 +46,15 @@ def collect_episode(task: CollectTask) -> dict[str, Any]:
     import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
     from parcelpick_env.assets.library import AssetLibrary
     from policies.cell_twin import CellTwin
-    from policies.registry import make_policy
-    from policies.tool_check import ToolCheckConfig, ToolCheckedPolicy
+    from policies.tool_check import ToolCheckedPolicy
 
     ep = task.episode
     cfg = ep.config
+    policy = episode_policy(cfg)  # as eval/clearance.py acts: through the tool check, with cfg's retry radius
+    if not isinstance(policy, ToolCheckedPolicy):
+        raise ValueError(f"collect rehearses the tool check's passing picks, which policy {cfg.policy!r} does not go "
+                         "through (its own act, or no depth image)")
     env = gym.make("ParcelPick-v0", **episode_env_kwargs(ep), obs_mode="pointcloud")
-    policy = ToolCheckedPolicy(make_policy(cfg.policy, **cfg.policy_kwargs),
-                               ToolCheckConfig(retry_radius=task.retry_radius))
     unwrapped = env.unwrapped
     twin = CellTwin(unwrapped.config)
     library = AssetLibrary.default(unwrapped.config.asset_seed)
@@ -117,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--parcels", type=int, default=10)
     p.add_argument("--candidates", type=int, default=RERANK, help="passing picks rehearsed per state")
     p.add_argument("--retry-radius", type=float, default=0.0, metavar="M",
-                   help="the cell's retry rule in the tool check, as eval/clearance.py's; 0 is off")
+                   help="the cell's retry rule in the tool check, as eval/clearance.py's; 0 is off, as the shipped "
+                        "hold check's data were collected (policies/hold/checkpoints/hold.pt records the command)")
     p.add_argument("--seed", type=int, default=1000, help="grid seed; the report's episodes use 0")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--backend", default="local", choices=BACKENDS)
@@ -134,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    tasks = [CollectTask(t, str(out), args.candidates, args.retry_radius) for t in episode_tasks(config)]
+    tasks = [CollectTask(t, str(out), args.candidates) for t in episode_tasks(config)]
     counts = list(parallel_map(collect_episode, tasks, workers=args.workers, backend=args.backend,
                                desc="rehearsing", progress=True))
     states = sum(c["states"] for c in counts)
