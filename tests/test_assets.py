@@ -102,3 +102,22 @@ def test_library_is_deterministic_per_index(library):
     other = AssetLibrary.generate(seed=1, num_train=1, num_test=0)
     assert not np.array_equal(other.train[0].mesh.vertices, library.train[0].mesh.vertices)
     assert AssetLibrary.default(0) is library  # cached
+
+
+def test_library_generates_an_asset_only_when_it_is_asked_for(monkeypatch):
+    import parcelpick_env.assets.library as library_module
+
+    made: list[str] = []
+    real = library_module.generate_parcel
+    monkeypatch.setattr(library_module, "generate_parcel", lambda *a, **k: made.append(a[2]) or real(*a, **k))
+    lazy = AssetLibrary.generate(seed=0, num_train=9, num_test=3)
+    pool = lazy.assets("train", "planar")
+    assert len(lazy) == 12 and len(pool) == 3 and (lazy.train + lazy.test).ids[-1] == "test-cylindrical-002"
+    assert made == []  # choosing and indexing need only the keys
+    asset = pool[1]
+    assert made == [asset.asset_id] == ["train-planar-004"]
+    assert lazy.get("train-planar-004") is asset and pool[1] is asset and made == ["train-planar-004"]
+    eager = AssetLibrary.generate(seed=0, num_train=9, num_test=0).train[4]  # the same index, generated alone
+    assert np.array_equal(asset.mesh.vertices, eager.mesh.vertices) and asset.mass == eager.mass
+    with pytest.raises(IndexError, match="not in a library of 12 assets"):
+        lazy[12]

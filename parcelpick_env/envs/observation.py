@@ -46,7 +46,7 @@ import numpy as np
 from gymnasium import spaces
 from scipy.spatial.transform import Rotation
 
-from parcelpick_env.assets.library import AssetLibrary
+from parcelpick_env.assets.library import AssetLibrary, AssetView
 from parcelpick_env.assets.parcel import ParcelAsset
 from parcelpick_env.envs.config import OBS_MODES
 from parcelpick_env.scene.config import MAX_FRICTION, MAX_PARCELS
@@ -65,7 +65,7 @@ NOT_IN_LIBRARY = -1  # parcel_asset_index of padding rows and of assets outside 
 IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)
 
 
-def library_assets(library: AssetLibrary) -> list[ParcelAsset]:
+def library_assets(library: AssetLibrary) -> AssetView:
     """The library's assets in index order (generation order: the training assets, then the test ones)."""
     return library.train + library.test
 
@@ -220,7 +220,7 @@ class ObservationBuilder:
 
     def _index(self) -> dict[str, int]:
         if self._asset_index is None:
-            self._asset_index = {a.asset_id: i for i, a in enumerate(library_assets(self._library()))}
+            self._asset_index = {asset_id: i for i, asset_id in enumerate(library_assets(self._library()).ids)}
         return self._asset_index
 
     def state(self, scene: "Scene", sim: "Simulator") -> dict[str, Any]:

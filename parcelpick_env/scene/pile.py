@@ -59,7 +59,7 @@ SIDE_TIP_ANGLE_DEG = 25.0
 SCATTER_YAW_STEPS = np.array([0.0, np.pi / 2])  # scattered: the drawn yaw, turned 90 deg, then square to the walls
 
 
-def _choose_assets(pool: list[ParcelAsset], n: int, rng: np.random.Generator) -> list[ParcelAsset]:
+def _choose_assets(pool: Sequence[ParcelAsset], n: int, rng: np.random.Generator) -> list[ParcelAsset]:
     """Draw ``n`` assets, cycling through random permutations so repeats come as late as possible."""
     order: list[int] = []
     while len(order) < n:
