@@ -425,14 +425,21 @@ def tool_check_settings(config: ClearanceConfig) -> dict[str, bool | float]:
     return dict(zip(CHECK_SETTINGS, (applies, applies and config.seal_check, retry_radius(config) if applies else 0.0)))
 
 
-def check_line(summary: dict[str, Any]) -> str:
-    """The tool check a summary's episodes ran through, in words."""
-    if not summary["tool_check"]:
-        return "off"
-    seal = ", with the seal" if summary["seal_check"] else ""
-    radius = summary.get("retry_radius") or 0.0
-    retry = f", not going back within {radius:g} m of a failed pick" if radius > 0 else ", no retry rule"
-    return f"on{seal}{retry}"
+def tool_check_line(clearance: dict[str, Any]) -> str:
+    """Whether a clearance summary's episodes ran through the cell's tool check (policies/tool_check.py), and with
+    which rules, in words: the CLI prints it and the report quotes it."""
+    if clearance.get("tool_check"):
+        seal = " and whose cup seals on it" if clearance.get("seal_check") else ""
+        radius = clearance.get("retry_radius")
+        retry = ("" if radius is None else " No retry rule." if not radius else
+                 f" It does not go back within {radius:g} m of a pick that failed since the last success while "
+                 "another passes (the retry rule).")
+        return ("Acting through the cell's tool check: the best of its candidates whose physical tool (cup, flange, "
+                f"wrist) is clear of the observed scene{seal} (`policies/tool_check.py`).{retry}")
+    if clearance.get("config", {}).get("tool_check") is False:
+        return "Acting on its top candidate as ranked (`--no-tool-check`)."
+    return ("Without the tool check: it does not apply (the oracle checks its tool on the true scene; a method with "
+            "its own act), or the clearance predates it.")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -503,7 +510,7 @@ def main(argv: list[str] | None = None) -> int:
     summary = evaluate_clearance(config)
     print(f"\nClosed-loop clearance, policy {config.policy!r}: R_grasp / R_object (%)\n")
     print(format_table(summary, config.objects, config.layouts))
-    print("Tool check (policies/tool_check.py): " + check_line(summary))
+    print(tool_check_line(summary))
     replays = [e["replay"] for e in summary["episodes"] if e["replay"]]
     if replays:
         print(f"\nReplays ({len(replays)}): open one with `rerun {replays[0]}`")

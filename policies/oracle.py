@@ -86,6 +86,7 @@ from parcelpick_env.suction.scorer import SuctionScorer, SuctionScores
 from parcelpick_env.suction.wrench import wrench_scores
 from policies.base import Candidates, Policy
 from policies.cell_twin import CellTwin
+from policies.failed_picks import FailedPicks
 
 STATE_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion", "parcel_com",
                                "parcel_mass", "parcel_asset_index", "parcel_extents", "parcel_friction", "bin")
@@ -476,24 +477,22 @@ class OraclePolicy(Policy):
         self._aimed_com: tuple[int, np.ndarray] | None = None  # (asset index, COM) of the last pick's parcel
         self._failed_coms: list[tuple[int, np.ndarray]] = []  # the same, of parcels whose pick failed
         self._aimed_pick: np.ndarray | None = None  # (6,) point and normal of the last proposed pick
-        self._failed_picks: list[np.ndarray] = []  # the same, of picks that failed
+        self.failed = FailedPicks(forget_on_success=False, at_contact=False)  # the approaches that failed
 
     def reset(self, seed: int | None = None) -> None:
         """A new episode: forget which picks failed."""
         self._aimed_com = None
         self._failed_coms = []
         self._aimed_pick = None
-        self._failed_picks = []
+        self.failed.clear()
 
     def _note_outcome(self, info: Mapping[str, Any]) -> None:
         """A failed attempt (``info['outcome']``, which every policy sees) puts that parcel behind the others,
         so a deterministic oracle does not repeat a pick the cell could not do; and the failed approach itself
         (point and normal) behind the parcel's other approaches, so the last parcel left is tried another way."""
-        outcome = info.get("outcome")
-        if self._aimed_com is not None and outcome is not None and outcome != "success":
+        pick = (None, None) if self._aimed_pick is None else (self._aimed_pick[:3], self._aimed_pick[3:])
+        if self._aimed_com is not None and self.failed.note(info, *pick):
             self._failed_coms.append(self._aimed_com)
-            if self._aimed_pick is not None:
-                self._failed_picks.append(self._aimed_pick)
         self._aimed_com = None
         self._aimed_pick = None
 
@@ -571,10 +570,8 @@ class OraclePolicy(Policy):
         ratio (the nearest to holding), with approaches that already failed last. A real cell would try these
         rather than stand idle: the prediction takes the worst yaw and the parcel hanging still."""
         free = np.flatnonzero(grasp.collision > 0)
-        repeated = np.zeros(len(free), dtype=bool)
-        for failed in self._failed_picks:
-            repeated |= ((np.linalg.norm(points[free] - failed[:3], axis=1) < self.config.retry_radius)
-                         & (normals[free] @ failed[3:] > np.cos(np.radians(self.config.retry_angle_deg))))
+        repeated = self.failed.count_near(points[free], self.config.retry_radius, normals[free],
+                                          self.config.retry_angle_deg) > 0
         worst = np.nan_to_num(grasp.worst[free], nan=np.inf)
         return free[np.lexsort((worst, grasp.seal[free] < self.config.seal_floor, repeated))]
 
@@ -742,10 +739,8 @@ class OraclePolicy(Policy):
         indices = np.full(len(truth.meshes), -1) if truth.asset_index is None else truth.asset_index
         for index, com in self._failed_coms:
             tried += (indices == index) if index >= 0 else (np.linalg.norm(truth.coms - com, axis=1) < c.retry_radius)
-        repeated = np.zeros(len(admissible), dtype=np.int64)  # approaches that already failed
-        for failed in self._failed_picks:
-            repeated += ((np.linalg.norm(points[admissible] - failed[:3], axis=1) < c.retry_radius)
-                         & (normals[admissible] @ failed[3:] > np.cos(np.radians(c.retry_angle_deg))))
+        # approaches that already failed
+        repeated = self.failed.count_near(points[admissible], c.retry_radius, normals[admissible], c.retry_angle_deg)
         contacts = hull_contacts(truth)
         pinned = pinned_parcels(truth, contacts)
         leaned = leaned_on(truth, contacts)

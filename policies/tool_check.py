@@ -46,6 +46,7 @@ from parcelpick_env.suction.physical import physical_tool
 from parcelpick_env.suction.seal import SealScene
 from policies.base import Candidates, Policy
 from policies.exposure import ExposureConfig, check_covered_factor, exposed_picks
+from policies.failed_picks import FailedPicks
 from policies.heatmap import pixels_to_world
 from policies.observation import camera, depth_image
 
@@ -101,38 +102,6 @@ def check_retry_radius(owner: str, value: object) -> None:
     ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and float(value) >= 0.0
     if not ok:
         raise ValueError(f"{owner}.retry_radius must be a finite number of metres >= 0 (0: off), got {value!r}")
-
-
-class FailedPicks:
-    """Where the cell's picks failed since its last success, learnt from the env's ``info`` once per attempt."""
-
-    def __init__(self) -> None:
-        self.points = np.zeros((0, 3))
-        self._seen = 0
-
-    def clear(self) -> None:
-        self.points, self._seen = np.zeros((0, 3)), 0
-
-    def note(self, info: Mapping[str, Any] | None, chosen: np.ndarray | None) -> None:
-        """Read the last attempt's outcome from ``info`` (nothing if none, or if already read): a success forgets
-        every failed pick; a failure adds where the cup touched, else ``chosen`` (the pick that was offered)."""
-        attempts = int((info or {}).get("attempts", 0))
-        if info is None or "outcome" not in info or attempts <= self._seen:
-            return
-        self._seen = attempts
-        if info["outcome"] == "success":
-            self.points = np.zeros((0, 3))
-            return
-        where = np.asarray(info["contact_point"], dtype=np.float64) if info.get("contacted") else chosen
-        if where is not None:
-            self.points = np.vstack([self.points, np.asarray(where, dtype=np.float64).reshape(1, 3)])
-
-    def near(self, points: np.ndarray, radius: float) -> np.ndarray:
-        """(K,) bool: within ``radius`` of a failed pick."""
-        if len(self.points) == 0 or radius <= 0:
-            return np.zeros(len(points), dtype=bool)
-        gaps = np.linalg.norm(np.asarray(points, dtype=np.float64)[:, None] - self.points[None], axis=-1)
-        return gaps.min(axis=1) <= radius
 
 
 def observed_mesh(depth: np.ndarray, intrinsics: np.ndarray, extrinsics: np.ndarray, stride: int = 3

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, check_line, episode_tasks,
+from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
                             evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise,
-                            tool_check_applies, tool_check_settings)
+                            tool_check_applies, tool_check_line, tool_check_settings)
 from fresh_process import in_fresh_process
 from parcelpick_env.camera.config import CameraConfig
 from policies.tool_check import RETRY_RADIUS
@@ -144,11 +144,15 @@ def test_cli_retry_radius_negative_or_without_the_tool_check_exits_2_naming_it(c
     ClearanceConfig(**TINY, tool_check=False)  # the cell's own radius (None) leaves a run without the check valid
 
 
-def test_check_line_says_which_retry_rule_ran():
-    assert check_line({"tool_check": True, "seal_check": True, "retry_radius": 0.05}) == (
-        "on, with the seal, not going back within 0.05 m of a failed pick")
-    assert check_line({"tool_check": True, "seal_check": False, "retry_radius": 0.0}) == "on, no retry rule"
-    assert check_line({"tool_check": False, "seal_check": False, "retry_radius": 0.0}) == "off"
+def test_the_tool_check_line_says_which_rules_ran():
+    on = tool_check_line({"tool_check": True, "seal_check": True, "retry_radius": 0.05})
+    assert "whose cup seals on it" in on and "does not go back within 0.05 m" in on
+    bare = tool_check_line({"tool_check": True, "seal_check": False, "retry_radius": 0.0})
+    assert "seals" not in bare and bare.endswith("No retry rule.")
+    off = {"tool_check": False, "seal_check": False, "retry_radius": 0.0}
+    assert tool_check_line({**off, "config": {"tool_check": False}}) == (
+        "Acting on its top candidate as ranked (`--no-tool-check`).")
+    assert tool_check_line({**off, "config": {"tool_check": True}}).startswith("Without the tool check: it does not apply")
 
 
 def test_covered_factor_reaches_the_tool_check_and_is_recorded(monkeypatch):

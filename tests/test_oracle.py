@@ -85,13 +85,13 @@ def test_oracle_moves_on_from_a_failed_pick_until_the_next_episode():
     obs, info = state_obs(STACK), {"suction": SUCTION}
     oracle.predict(obs, info)
     assert oracle.last_object_ids[0] == 1
-    oracle.predict(obs, {**info, "outcome": "unreachable"}, top_k=1000)  # the cell could not do that pick
+    oracle.predict(obs, {**info, "attempts": 1, "outcome": "unreachable"}, top_k=1000)  # the cell could not do it
     ids = oracle.last_object_ids
     # it goes behind the other free carton, not out, and still before the carton it lies on (pinned under it)
     assert ids[0] == 2 and np.all(ids[:int(np.argmax(ids == 1))] == 2)
     assert int(np.argmax(ids == 0)) > int(np.flatnonzero(ids == 1).max())
     oracle.reset(0)
-    oracle.predict(obs, {**info, "outcome": "unreachable"})  # a new episode: nothing was aimed at yet
+    oracle.predict(obs, {**info, "attempts": 1, "outcome": "unreachable"})  # a new episode: nothing aimed at yet
     assert oracle.last_object_ids[0] == 1
 
 
@@ -119,7 +119,7 @@ def test_where_nothing_would_hold_the_oracle_still_tries_a_guess_and_then_anothe
     assert np.all(oracle.last_scores.collision > 0) and np.all(oracle.last_scores.seal >= oracle.config.seal_floor)
     assert np.linalg.norm(found.points[0, :2]) < 0.001  # at the COM
     first = found.points[0]
-    again = oracle.predict(obs, {**info, "outcome": "dropped"}, top_k=1)  # that guess failed: another approach
+    again = oracle.predict(obs, {**info, "attempts": 1, "outcome": "dropped"}, top_k=1)  # it failed: another way
     assert np.linalg.norm(again.points[0] - first) >= oracle.config.retry_radius
 
 

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from eval.clearance import tool_check_line
 from eval.report.comparisons import comparisons_against
 from eval.report.config import (
     CEILING,
@@ -238,22 +239,6 @@ def paper_compat_section(report: dict[str, Any]) -> list[str]:
         "`paper_compat`), far more lenient than its evaluator's; (d) does both. These rows show how the protocol "
         "moves the figure; they are **paper-compatible, not a measure of picking**.", "",
         paper_compat_table(rows), "", *paper_compat_sentences(rows), ""]
-
-
-def tool_check_line(clearance: dict[str, Any]) -> str:
-    """Whether a method's clearance ran through the cell's tool check (policies/tool_check.py)."""
-    if clearance.get("tool_check"):
-        seal = " and whose cup seals on it" if clearance.get("seal_check") else ""
-        radius = clearance.get("retry_radius")
-        retry = ("" if radius is None else " No retry rule." if not radius else
-                 f" It does not go back within {radius:g} m of a pick that failed since the last success while "
-                 "another passes (the retry rule).")
-        return ("Acting through the cell's tool check: the best of its candidates whose physical tool (cup, flange, "
-                f"wrist) is clear of the observed scene{seal} (`policies/tool_check.py`).{retry}")
-    if clearance.get("config", {}).get("tool_check") is False:
-        return "Acting on its top candidate as ranked (`--no-tool-check`)."
-    return ("Without the tool check: it does not apply (the oracle checks its tool on the true scene; a method with "
-            "its own act), or the clearance predates it.")
 
 
 def label_physics_section(report: dict[str, Any], out: Path) -> list[str]:
