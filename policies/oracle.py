@@ -476,7 +476,7 @@ class OraclePolicy(Policy):
         self.last_rehearsals: list[str] = []  # the outcome of each rehearsal of the last decision, in order
         self._aimed_com: tuple[int, np.ndarray] | None = None  # (asset index, COM) of the last pick's parcel
         self._failed_coms: list[tuple[int, np.ndarray]] = []  # the same, of parcels whose pick failed
-        self._aimed_pick: np.ndarray | None = None  # (6,) point and normal of the last proposed pick
+        self._aimed_pick: tuple[np.ndarray, np.ndarray] | None = None  # point and normal of the last proposed pick
         self.failed = FailedPicks(forget_on_success=False, at_contact=False)  # the approaches that failed
 
     def reset(self, seed: int | None = None) -> None:
@@ -490,8 +490,7 @@ class OraclePolicy(Policy):
         """A failed attempt (``info['outcome']``, which every policy sees) puts that parcel behind the others,
         so a deterministic oracle does not repeat a pick the cell could not do; and the failed approach itself
         (point and normal) behind the parcel's other approaches, so the last parcel left is tried another way."""
-        pick = (None, None) if self._aimed_pick is None else (self._aimed_pick[:3], self._aimed_pick[3:])
-        if self._aimed_com is not None and self.failed.note(info, *pick):
+        if self._aimed_com is not None and self._aimed_pick is not None and self.failed.note(info, *self._aimed_pick):
             self._failed_coms.append(self._aimed_com)
         self._aimed_com = None
         self._aimed_pick = None
@@ -550,7 +549,7 @@ class OraclePolicy(Policy):
         k = int(owner[order[0]])
         index = -1 if truth.asset_index is None else int(truth.asset_index[k])
         self._aimed_com = (index, truth.coms[k].copy())
-        self._aimed_pick = np.concatenate([points[order[0]], normals[order[0]]])
+        self._aimed_pick = (points[order[0]].copy(), normals[order[0]].copy())
         rank = 1.0 - np.arange(len(order)) / len(order)
         return Candidates(points=points[order].astype(np.float32), normals=normals[order].astype(np.float32),
                           scores=rank.astype(np.float32))
