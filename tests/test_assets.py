@@ -121,3 +121,15 @@ def test_library_generates_an_asset_only_when_it_is_asked_for(monkeypatch):
     assert np.array_equal(asset.mesh.vertices, eager.mesh.vertices) and asset.mass == eager.mass
     with pytest.raises(IndexError, match="not in a library of 12 assets"):
         lazy[12]
+
+
+def test_a_library_pickles_as_its_recipe_or_its_assets():
+    import pickle
+
+    lazy = AssetLibrary.generate(seed=3, num_train=4, num_test=1)
+    copy = pickle.loads(pickle.dumps(lazy))
+    assert copy.keys == lazy.keys and copy.seed == 3
+    assert np.array_equal(copy.test[0].mesh.vertices, lazy.test[0].mesh.vertices)
+    eager = AssetLibrary([lazy.train[0], lazy.test[0]], seed=None)
+    back = pickle.loads(pickle.dumps(eager))
+    assert [a.asset_id for a in back.train + back.test] == [lazy.train[0].asset_id, lazy.test[0].asset_id]

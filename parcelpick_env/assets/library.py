@@ -85,6 +85,7 @@ class AssetLibrary:
         self._make = make
         self._made: dict[int, ParcelAsset] = {}
         self._lock = threading.Lock()  # one asset object per index, whichever thread asks first
+        self._recipe: tuple[int, int, int] | None = None  # (seed, num_train, num_test) of a generated library
 
     @classmethod
     def generate(cls, seed: int = 0, num_train: int = NUM_TRAIN, num_test: int = NUM_TEST) -> "AssetLibrary":
@@ -104,7 +105,14 @@ class AssetLibrary:
 
         library = cls.__new__(cls)
         library._setup(keys, make, seed)
+        library._recipe = (int(seed), num_train, num_test)
         return library
+
+    def __reduce__(self) -> tuple:
+        """Pickled as its recipe where it has one (the assets regenerate identically), else as its assets."""
+        if self._recipe is not None:
+            return AssetLibrary.generate, self._recipe
+        return AssetLibrary, ([self[i] for i in range(len(self))], self.seed)
 
     @staticmethod
     def default(seed: int = 0) -> "AssetLibrary":
