@@ -53,15 +53,18 @@ def main(argv: list[str] | None = None) -> None:
                         max_attempts=args.attempts, max_consecutive_failures=args.max_failures,
                         **({"suction": SuctionConfig(cup_radius=args.cup_radius)} if args.cup_radius else {}))
     capture_times: list[float] = []
-    capture = env.camera.capture
 
-    def timed_capture(*a, **k):  # benchmark-only instrumentation of the camera's share
-        t0 = time.perf_counter()
-        out = capture(*a, **k)
-        capture_times.append(time.perf_counter() - t0)
-        return out
+    def timed(method):  # benchmark-only instrumentation of the camera's share
+        def run(*a, **k):
+            t0 = time.perf_counter()
+            out = method(*a, **k)
+            capture_times.append(time.perf_counter() - t0)
+            return out
+        return run
 
-    env.camera.capture = timed_capture
+    # the render and back-projection, then the normals at the sampled points only (Camera.normals_at)
+    env.camera.capture = timed(env.camera.capture)
+    env.camera.normals_at = timed(env.camera.normals_at)
     resets, steps, step_capture, sim_times = [], [], [], []
     outcomes: Counter[str] = Counter()
     causes: Counter[str] = Counter()
