@@ -13,7 +13,8 @@ from parcelpick_env.assets.parcel import ParcelAsset
 from parcelpick_env.camera.camera import Camera
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.camera.frame import BACKGROUND
-from parcelpick_env.camera.normals import organized_normals, smallest_eigenvectors
+from parcelpick_env.camera import normals as normals_module
+from parcelpick_env.camera.normals import knn_normals_at, open3d_normals, organized_normals, smallest_eigenvectors
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 
@@ -215,3 +216,19 @@ def test_normals_at_a_few_points_match_the_full_estimate(box_world, normal_metho
                                   cam.normals_at(bare, idx))
     with pytest.raises(ValueError, match="captures"):
         _camera().normals_at(Camera(CameraConfig(width=80, height=60)).capture(sim, scene, normals=False), idx)
+
+
+def test_normals_at_one_point_scan_the_cloud_and_agree_with_the_tree_and_open3d(monkeypatch):
+    """A few query points scan every distance instead of building a k-d tree: the same neighbours, nearest
+    first, so the same normals bit for bit; both agree with Open3D's estimate over the whole cloud."""
+    rng = np.random.default_rng(0)
+    x, y = np.meshgrid(np.linspace(-0.2, 0.2, 120), np.linspace(-0.15, 0.15, 90))
+    points = np.stack([x.ravel(), y.ravel(), 0.1 * np.sin(8 * x.ravel()) + rng.normal(0, 0.002, x.size)], axis=1)
+    viewpoint = np.array([0.0, 0.0, 1.5])
+    at = rng.choice(len(points), 2, replace=False)
+    assert 2 * len(points) <= normals_module.SCAN_PAIRS  # this call scans
+    scanned = knn_normals_at(points, at, 30, viewpoint)
+    monkeypatch.setattr(normals_module, "SCAN_PAIRS", 0)  # this one builds the tree
+    np.testing.assert_array_equal(scanned, knn_normals_at(points, at, 30, viewpoint))
+    np.testing.assert_allclose(scanned, open3d_normals(points, 30, viewpoint)[at], atol=1e-6)
+    assert np.degrees(np.arccos(np.clip(scanned[:, 2], -1, 1))).max() > 3  # a curved, noisy surface, not a plane
