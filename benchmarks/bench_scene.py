@@ -7,7 +7,8 @@ Prints two markdown tables:
 - ``ParcelPickEnv.reset`` at ``--reset-parcels`` stacked parcels (pile build, arm, settle against the
   arm, first capture at the env's default 640x480 camera): median wall time, and the pile build's share.
 Run: ``.venv/bin/python benchmarks/bench_scene.py [--runs 5] [--objects mixed] [--reset-runs 3]``; ``--wall-height``,
-``--layouts`` and ``--counts`` ask what another tote would keep (``--wall-height 0.5 --layouts stacked --counts 50``).
+``--layouts`` and ``--counts`` ask what another tote would keep (``--wall-height 0.5 --layouts stacked --counts 50``),
+``--heavy-first KG`` what another induction order would.
 """
 
 from __future__ import annotations
@@ -40,13 +41,15 @@ def _timed(fn):
 
 
 def _pile_rows(object_sets: list[str], runs: int, library: AssetLibrary, spec: BinSpec,
-               layouts: tuple[str, ...] = LAYOUTS, counts: tuple[int, ...] = COUNTS) -> list[str]:
+               layouts: tuple[str, ...] = LAYOUTS, counts: tuple[int, ...] = COUNTS,
+               heavy_first_mass: float | None = None) -> list[str]:
     rows = []
     with Simulator(SimConfig(egl_rendering=False)) as sim:
         for object_set in object_sets:
             for layout in layouts:
                 for n in counts:
-                    config = PileConfig(num_parcels=n, layout=layout, object_set=object_set, bin=spec)
+                    config = PileConfig(num_parcels=n, layout=layout, object_set=object_set, bin=spec,
+                                        heavy_first_mass=heavy_first_mass)
                     kept, skipped, lost, walls, cpus, steps, rest = [], [], [], [], [], [], 0
                     for seed in range(runs):
                         scene, wall, cpu = _timed(lambda: build_pile(sim, config, seed=seed, library=library))
@@ -104,6 +107,8 @@ def main() -> None:
     parser.add_argument("--reset-runs", type=int, default=3, help="env resets timed (0 skips the env)")
     parser.add_argument("--wall-height", type=float, default=BinSpec().wall_height,
                         help="the tote's wall height (m) for the pile rows; the env's reset keeps the cell's own")
+    parser.add_argument("--heavy-first", type=float, default=None, metavar="KG",
+                        help="stacked pile rows: parcels heavier than KG go down the chute first (PileConfig.heavy_first_mass)")
     parser.add_argument("--layouts", nargs="+", default=list(LAYOUTS), choices=LAYOUTS)
     parser.add_argument("--counts", nargs="+", type=int, default=list(COUNTS), help="parcels asked")
     args = parser.parse_args()
@@ -112,11 +117,17 @@ def main() -> None:
         spec = BinSpec(wall_height=args.wall_height)
     except ValueError as exc:
         parser.error(f"--wall-height: {exc}")
+    try:
+        PileConfig(heavy_first_mass=args.heavy_first)
+    except ValueError as exc:
+        parser.error(f"--heavy-first: {exc}")
 
     library = AssetLibrary.default(0)
-    rows = _pile_rows(object_sets, args.runs, library, spec, tuple(args.layouts), tuple(args.counts))
+    rows = _pile_rows(object_sets, args.runs, library, spec, tuple(args.layouts), tuple(args.counts),
+                      args.heavy_first)
+    order = "" if args.heavy_first is None else f"; parcels over {args.heavy_first:g} kg first"
     print(f"\n### Piles: parcels kept against parcels asked ({args.runs} seeds each; tote "
-          f"{spec.inner_size[0]:.2f} x {spec.inner_size[1]:.2f} x {spec.wall_height:.2f} m)\n")
+          f"{spec.inner_size[0]:.2f} x {spec.inner_size[1]:.2f} x {spec.wall_height:.2f} m{order})\n")
     print("| object set | layout | asked | kept (mean) | kept (range) | skipped | lost | build+settle wall (s) | "
           "CPU (s) | sim steps | at rest |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

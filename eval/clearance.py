@@ -17,7 +17,7 @@ import json
 import sys
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -112,6 +112,10 @@ class ClearanceConfig:
         clash = sorted(set(self.env_kwargs) & set(RESERVED_ENV_KWARGS))
         if clash:
             raise ValueError(f"env_kwargs may not set {clash}: use the ClearanceConfig fields instead")
+        from parcelpick_env.envs.config import EnvConfig
+
+        options = {f.name for f in fields(EnvConfig)}  # a bad env option fails here, before any pile is built
+        EnvConfig(**{k: v for k, v in self.env_kwargs.items() if k in options})
 
 
 @dataclass(frozen=True)
@@ -473,6 +477,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with the tool check, do not go back within M metres of a pick that failed since the last "
                         "success while another pick passes (policies/tool_check.py); 0 is off (default: the "
                         "cell's 0.05)")
+    p.add_argument("--heavy-first", type=float, default=None, metavar="KG",
+                   help="stacked piles: parcels heavier than KG go down the chute first (EnvConfig.heavy_first_mass; "
+                        "docs/piles.md, 'Heavy parcels first'); default: the cell's drawn order")
     p.add_argument("--audit-picks", action="store_true",
                    help="record per attempt which parcel the pick took and whether other parcels rested on it "
                         "(eval/pick_audit.py; the evaluator reads the true scene, the policy does not)")
@@ -502,8 +509,8 @@ def main(argv: list[str] | None = None) -> int:
                                  record_dir=args.record, checkpoint=args.checkpoint, policy_kwargs=policy_kwargs,
                                  max_attempts=args.max_attempts, tool_check=args.tool_check,
                                  seal_check=args.seal_check, covered_factor=args.covered_factor,
-                                 retry_radius=args.retry_radius,
-                                 audit_picks=args.audit_picks)
+                                 retry_radius=args.retry_radius, audit_picks=args.audit_picks,
+                                 env_kwargs={} if args.heavy_first is None else {"heavy_first_mass": args.heavy_first})
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

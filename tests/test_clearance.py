@@ -101,7 +101,8 @@ def test_summarise_of_episode_without_attempts_is_not_a_division_by_zero():
 @pytest.mark.parametrize("bad", [dict(objects=("spheres",)), dict(objects=()), dict(layouts=("piled",)),
                                  dict(episodes=0), dict(num_parcels=0), dict(num_parcels=51),
                                  dict(backend="spark"), dict(workers=0), dict(seed=-1), dict(max_attempts=0),
-                                 dict(env_kwargs={"num_parcels": 3}), dict(covered_factor=1.5),
+                                 dict(env_kwargs={"num_parcels": 3}), dict(env_kwargs={"heavy_first_mass": -1.0}),
+                                 dict(covered_factor=1.5),
                                  dict(covered_factor=0.5, tool_check=False)])
 def test_config_rejects_bad_values(bad):
     with pytest.raises(ValueError):

@@ -84,6 +84,7 @@ def test_simulator_rejects_bad_input_and_cleans_up(library):
     dict(num_parcels=0), dict(num_parcels=51), dict(object_set="spheres"), dict(layout="heap"),
     dict(split="validation"), dict(friction_range=(0.8, 0.2)), dict(friction_range=(-0.1, 0.5)),
     dict(drop_height=-1.0), dict(chute_height=0.2), dict(stack_tilt_deg=-5.0), dict(scatter_yaw_jitter_deg=90.0),
+    dict(heavy_first_mass=-0.5), dict(heavy_first_mass=float("nan")), dict(heavy_first_mass=float("inf")),
 ])
 def test_pile_config_validation(kwargs):
     with pytest.raises(ValueError):
@@ -134,6 +135,48 @@ def test_stacked_pile_is_inside_the_bin_and_at_rest(sim, library):
     sim.step(40)  # at rest: another sixth of a second under nominal physics moves nothing visibly
     moved = [np.linalg.norm(sim.body_pose(p.body_id)[0] - p.position) for p in scene.parcels]
     assert max(moved) < 0.002
+
+
+def test_heavy_parcels_first_go_down_the_chute_first_and_land_low(sim, library):
+    """The same draws in another order: the parcels over the mass go first (a stable partition), so they rest
+    on the floor rather than on the others; a mass no parcel exceeds changes nothing, bit for bit."""
+    base = dict(num_parcels=12, layout="stacked", object_set="mixed")
+
+    def build(**kwargs):  # the scene, and how high each parcel's hull starts above the floor (while it exists)
+        scene = build_pile(sim, PileConfig(**base, **kwargs), seed=0, library=library)
+        return scene, [pb.getAABB(p.body_id, physicsClientId=sim.client)[0][2] - scene.bin.floor_z
+                       for p in scene.parcels]
+
+    drawn, drawn_bottoms = build()
+    masses = [p.asset.mass for p in drawn.parcels]
+    cut = float(np.sort(masses)[-4])  # the three heaviest are over it
+    routed, routed_bottoms = build(heavy_first_mass=cut)
+    assert len(drawn.parcels) == len(routed.parcels) == 12  # nothing lost either way, so scene order is drop order
+    heavy = [p.asset.asset_id for p in drawn.parcels if p.asset.mass > cut]
+    light = [p.asset.asset_id for p in drawn.parcels if p.asset.mass <= cut]
+    assert len(heavy) == 3 and [p.asset.asset_id for p in routed.parcels] == heavy + light
+    assert max(routed_bottoms[:3]) < 0.02  # all three on the floor
+    assert max(b for b, m in zip(drawn_bottoms, masses) if m > cut) > 0.05  # drawn order: one lay on others
+    unchanged, _ = build(heavy_first_mass=max(masses))
+    for x, y in zip(_poses(drawn), _poses(unchanged)):
+        assert np.array_equal(x, y)
+
+
+def test_the_env_passes_its_induction_order_to_the_pile(library):
+    from parcelpick_env.camera.config import CameraConfig
+    from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+
+    env = ParcelPickEnv(num_parcels=8, layout="stacked", heavy_first_mass=0.5, num_points=256,
+                        camera=CameraConfig(width=64, height=48))
+    try:
+        env.reset(seed=2)
+        masses = [p.asset.mass for p in env.scene.parcels]
+        heavy = sum(m > 0.5 for m in masses)
+        assert 0 < heavy < len(masses) and all(m > 0.5 for m in masses[:heavy])  # the heavy class came first
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="heavy_first_mass"):
+        ParcelPickEnv(heavy_first_mass=float("nan"))
 
 
 @pytest.mark.parametrize("seed", range(5))

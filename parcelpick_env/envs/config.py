@@ -16,7 +16,7 @@ from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.config_checks import (require, require_choice, require_int, require_positive_ints,
                                           require_positive_numbers)
 from parcelpick_env.robot.arm import ArmConfig
-from parcelpick_env.scene.config import check_pile_fields
+from parcelpick_env.scene.config import PileConfig, check_pile_fields
 from parcelpick_env.scene.scene import BinSpec
 from parcelpick_env.sim.config import SimConfig
 from parcelpick_env.suction.config import CELL_CUP_RADIUS, SuctionConfig
@@ -102,6 +102,7 @@ class EnvConfig:
     obs_mode: str = "pointcloud"  # one of OBS_MODES; "state_dict" is privileged (envs/observation.py)
     num_points: int = 4096  # fixed N of the observed cloud (sampled or padded); Diffusion-Suction's CPU preset size
     bin: BinSpec = field(default_factory=BinSpec)
+    heavy_first_mass: float | None = PileConfig.heavy_first_mass  # stacked induction order (PileConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     # The physical cup: a 40 mm bellows cup (r = 20 mm, suction/cup.py), rated V = dP*pi*r^2 / S (50 N at
     # 60 kPa, S = 1.5), judged by its bellows seal model (the one PickExecutor's contact seal uses, so a

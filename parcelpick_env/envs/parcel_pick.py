@@ -147,7 +147,7 @@ class ParcelPickEnv(gym.Env):
         if self._library is None:
             self._library = AssetLibrary.default(cfg.asset_seed)
         pile = PileConfig(num_parcels=cfg.num_parcels, layout=cfg.layout, object_set=cfg.object_set,
-                          split=cfg.split, bin=self._bin)
+                          split=cfg.split, bin=self._bin, heavy_first_mass=cfg.heavy_first_mass)
         return build_pile(self.sim, pile, seed, self._library)
 
     def _observe(self) -> dict[str, np.ndarray]:

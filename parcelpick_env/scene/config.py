@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from parcelpick_env.assets.library import OBJECT_SETS, SPLITS
-from parcelpick_env.config_checks import require_choice, require_int
+from parcelpick_env.config_checks import require, require_choice, require_int
 from parcelpick_env.scene.scene import BinSpec
 
 LAYOUTS: tuple[str, ...] = ("stacked", "scattered")
@@ -15,7 +16,8 @@ MAX_FRICTION = 5.0  # the largest parcel friction coefficient a pile may draw (a
 
 
 def check_pile_fields(config: Any) -> None:
-    """``num_parcels``, ``layout``, ``object_set`` and ``split`` of any config that describes a pile.
+    """``num_parcels``, ``layout``, ``object_set``, ``split`` and ``heavy_first_mass`` of any config that describes a
+    pile.
 
     ``EnvConfig`` calls this too, so a bad value fails when the env is configured rather than at its first
     reset, and both configs share one set of limits.
@@ -25,6 +27,9 @@ def check_pile_fields(config: Any) -> None:
     require_choice(owner, "layout", config.layout, LAYOUTS)
     require_choice(owner, "object_set", config.object_set, OBJECT_SETS)
     require_choice(owner, "split", config.split, SPLITS)
+    mass = config.heavy_first_mass
+    require(mass is None or (isinstance(mass, (int, float)) and not isinstance(mass, bool) and 0 <= mass < math.inf),
+            owner, f"heavy_first_mass must be None or a finite mass >= 0 kg, got {mass!r}")
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,9 @@ class PileConfig:
     scatter_gap: float = 0.01  # m between scattered footprints
     scatter_flat_prob: float = 0.85  # probability of resting on the largest face when scattered
     scatter_yaw_jitter_deg: float = 15.0  # scattered parcels lie square to the walls, give or take this
+    # stacked: parcels heavier than this (kg) go down the chute first, as an infeed scale can route a heavy
+    # class; None keeps the drawn order (docs/piles.md, 'Heavy parcels first')
+    heavy_first_mass: float | None = None
     max_settle_steps: int | None = None  # None: the simulator's SimConfig.max_settle_steps
 
     def __post_init__(self) -> None:

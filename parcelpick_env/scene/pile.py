@@ -67,6 +67,14 @@ def _choose_assets(pool: Sequence[ParcelAsset], n: int, rng: np.random.Generator
     return [pool[i] for i in order[:n]]
 
 
+def _heavy_first(assets: list[ParcelAsset], frictions: np.ndarray, mass: float
+                 ) -> tuple[list[ParcelAsset], np.ndarray]:
+    """Parcels heavier than ``mass`` first, each class in its drawn order (a stable partition): they land on
+    the floor, not askew on lighter ones, where no top-down cup holds them (docs/piles.md)."""
+    order = np.argsort([asset.mass <= mass for asset in assets], kind="stable")
+    return [assets[i] for i in order], frictions[order]
+
+
 def _chute_orientations(assets: list[ParcelAsset], cfg: PileConfig, rng: np.random.Generator) -> np.ndarray:
     """Parcels come off an infeed conveyor on a face (mostly the largest, never a side they would topple
     from: ``_flat_tilt``) and tumble a little down the chute: random yaw, then a tilt about a random
@@ -265,6 +273,8 @@ def build_pile(sim: Simulator, config: PileConfig, seed: int, library: AssetLibr
     rng = np.random.default_rng(int(seed))
     assets = _choose_assets(pool, config.num_parcels, rng)
     frictions = rng.uniform(*config.friction_range, size=len(assets))
+    if config.layout == "stacked" and config.heavy_first_mass is not None:
+        assets, frictions = _heavy_first(assets, frictions, config.heavy_first_mass)
     limit = config.max_settle_steps or sim.config.max_settle_steps
     drop_iterations = min(DROP_SOLVER_ITERATIONS, sim.config.solver_iterations)
     drop_cap = min(limit, int(round(DROP_TIME / sim.config.timestep)))
