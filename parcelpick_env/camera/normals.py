@@ -54,8 +54,8 @@ def knn_normals_at(points: np.ndarray, at: np.ndarray, knn: int, viewpoint: np.n
         return np.tile([0.0, 0.0, 1.0], (len(at), 1))
     k = min(knn, len(points))
     if len(at) * len(points) <= SCAN_PAIRS:
-        # a few points (a pixel action's one): scanning every distance beats building the tree (4 ms a point
-        # against 24 at 307,200 points), the same k nearest, nearest first
+        # a few points (a pixel action's one): scanning every distance beats building the tree (8 ms of CPU
+        # against 25 for one point of 307,200), the same k nearest, nearest first
         nbr = np.empty((len(at), k), dtype=np.int64)
         for row, q in enumerate(points[at]):
             diff = points - q
