@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from parcelpick_env.assets.library import OBJECT_SETS, SPLITS
-from parcelpick_env.config_checks import require, require_choice, require_int
+from parcelpick_env.config_checks import require, require_choice, require_finite_numbers, require_int
 from parcelpick_env.scene.scene import BinSpec
 
 LAYOUTS: tuple[str, ...] = ("stacked", "scattered")
@@ -27,9 +26,9 @@ def check_pile_fields(config: Any) -> None:
     require_choice(owner, "layout", config.layout, LAYOUTS)
     require_choice(owner, "object_set", config.object_set, OBJECT_SETS)
     require_choice(owner, "split", config.split, SPLITS)
-    mass = config.heavy_first_mass
-    require(mass is None or (isinstance(mass, (int, float)) and not isinstance(mass, bool) and 0 <= mass < math.inf),
-            owner, f"heavy_first_mass must be None or a finite mass >= 0 kg, got {mass!r}")
+    if config.heavy_first_mass is not None:
+        require_finite_numbers(config, ("heavy_first_mass",))
+        require(config.heavy_first_mass >= 0, owner, f"heavy_first_mass must be >= 0 kg, got {config.heavy_first_mass!r}")
 
 
 @dataclass(frozen=True)
