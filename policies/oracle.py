@@ -475,14 +475,12 @@ class OraclePolicy(Policy):
         self.last_object_ids: np.ndarray | None = None
         self.last_rehearsals: list[str] = []  # the outcome of each rehearsal of the last decision, in order
         self._aimed_com: tuple[int, np.ndarray] | None = None  # (asset index, COM) of the last pick's parcel
-        self._failed_coms: list[tuple[int, np.ndarray]] = []  # the same, of parcels whose pick failed
         self._aimed_pick: tuple[np.ndarray, np.ndarray] | None = None  # point and normal of the last proposed pick
         self.failed = FailedPicks(forget_on_success=False, at_contact=False)  # the approaches that failed
 
     def reset(self, seed: int | None = None) -> None:
         """A new episode: forget which picks failed."""
         self._aimed_com = None
-        self._failed_coms = []
         self._aimed_pick = None
         self.failed.clear()
 
@@ -490,8 +488,8 @@ class OraclePolicy(Policy):
         """A failed attempt (``info['outcome']``, which every policy sees) puts that parcel behind the others,
         so a deterministic oracle does not repeat a pick the cell could not do; and the failed approach itself
         (point and normal) behind the parcel's other approaches, so the last parcel left is tried another way."""
-        if self._aimed_com is not None and self._aimed_pick is not None and self.failed.note(info, *self._aimed_pick):
-            self._failed_coms.append(self._aimed_com)
+        if self._aimed_pick is not None:  # each failure is tagged with its parcel: (asset index, COM)
+            self.failed.note(info, *self._aimed_pick, tag=self._aimed_com)
         self._aimed_com = None
         self._aimed_pick = None
 
@@ -736,7 +734,7 @@ class OraclePolicy(Policy):
         level = normals[admissible, 2] >= np.cos(np.radians(c.max_tilt_deg))
         tried = np.zeros(len(truth.meshes), dtype=np.int64)
         indices = np.full(len(truth.meshes), -1) if truth.asset_index is None else truth.asset_index
-        for index, com in self._failed_coms:
+        for index, com in self.failed.tags:  # the parcels whose pick failed
             tried += (indices == index) if index >= 0 else (np.linalg.norm(truth.coms - com, axis=1) < c.retry_radius)
         # approaches that already failed
         repeated = self.failed.count_near(points[admissible], c.retry_radius, normals[admissible], c.retry_angle_deg)

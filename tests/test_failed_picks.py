@@ -47,3 +47,19 @@ def test_a_failure_without_an_offered_pick_or_outcome_is_not_recorded():
     assert not failed.note({"attempts": 1}, np.zeros(3))  # the reset's info: no attempt yet
     assert not failed.note({"attempts": 1, "outcome": "dropped", "contacted": False}, None)
     assert failed.count_near(np.zeros((2, 3)), 0.05).tolist() == [0, 0]
+
+
+def test_each_failure_keeps_its_callers_tag_and_forgets_it_with_the_failure():
+    """The oracle tags a failure with the parcel it aimed at; the tags follow the failures, one each."""
+    kept = FailedPicks(forget_on_success=False, at_contact=False)
+    assert kept.note({"attempts": 1, "outcome": "dropped"}, np.zeros(3), UP, tag=(7, np.ones(3)))
+    assert kept.note({"attempts": 2, "outcome": "no_seal"}, np.ones(3), UP)  # untagged
+    assert not kept.note({"attempts": 3, "outcome": "success"}, np.ones(3), UP, tag="not a failure")
+    assert [t if t is None else t[0] for t in kept.tags] == [7, None]
+    forgetful = FailedPicks()
+    forgetful.note({"attempts": 1, "outcome": "dropped"}, np.zeros(3), tag="a")
+    forgetful.note({"attempts": 2, "outcome": "success"}, np.zeros(3), tag="b")
+    assert forgetful.tags == [] and len(forgetful.points) == 0
+    forgetful.note({"attempts": 3, "outcome": "dropped"}, np.zeros(3), tag="c")
+    forgetful.clear()
+    assert forgetful.tags == []
