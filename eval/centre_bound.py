@@ -29,8 +29,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
+from dataset.annotate import LABEL_CHANNELS
 from dataset.scene_record import scene_from_record
 from eval.ap import APConfig, _open, predict_scene, score_scene
 from eval.metrics import aggregate_ap
@@ -43,7 +45,7 @@ from policies.diffusion.policy import DiffusionSuctionPolicy
 from policies.oracle import OraclePolicy
 from policies.postprocess import select_candidates
 
-WRENCH_CHANNEL = 1  # seal, wrench, collision (, visibility): DiffusionConfig.num_channels
+WRENCH_CHANNEL = LABEL_CHANNELS.index("wrench")  # the model's score channels follow the labels' columns
 
 
 @dataclass(frozen=True)
@@ -95,7 +97,8 @@ class _ChannelCapture(DiffusionSuctionPolicy):
 
     captured: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def quality(self, points, normals, features, channel_scores):  # type: ignore[no-untyped-def]
+    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
+                ) -> np.ndarray:
         self.captured = (points, normals, channel_scores)
         return super().quality(points, normals, features, channel_scores)
 
@@ -135,9 +138,10 @@ def centre_bound(data_dir: str | Path, checkpoint: str | None = None, scenes: in
             raise ValueError(f"nothing to score: {data_dir} holds {len(store)} scenes, asked for {scenes}")
         for i in tqdm(range(total), desc="centre bound", unit="scene", disable=not progress):
             record = store.scene(i)
-            curves["label oracle"].append(score_scene(predict_scene(oracle, record, ap, np.random.default_rng()),
-                                                      record, ap)[0]["AP"])
+            labels = predict_scene(oracle, record, ap, np.random.default_rng([ap.seed, i]))  # the best stored labels
+            curves["label oracle"].append(score_scene(labels, record, ap)[0]["AP"])
             policy.reset(seed=ap.seed + i)  # eval/ap.py's seeds: the model row is its figure
+            policy.captured = None
             model = predict_scene(policy, record, ap, np.random.default_rng([ap.seed, i]))
             curves["model"].append(score_scene(model, record, ap)[0]["AP"])
             scorer = definition_scorer("suctionnet", scene_from_record(record))
@@ -147,11 +151,11 @@ def centre_bound(data_dir: str | Path, checkpoint: str | None = None, scenes: in
             variants = {"true": truth, **{f"sigma={s:g}": jittered_centres(truth, s, rng) for s in config.sigmas},
                         "visible_top": visible_top_centres(seen, np.asarray(record["normals"], dtype=np.float64),
                                                            seen_owner, seen_distance, len(truth), config)}
-            assert policy.captured is not None
-            owner, _ = scorer.nearest_object(policy.captured[0])
+            decoded = np.zeros((0, 3)) if policy.captured is None else policy.captured[0]  # none: too few points
+            owner, _ = scorer.nearest_object(decoded)
             for name, centres in variants.items():
                 per_point = np.where((owner >= 0)[:, None], centres[np.clip(owner, 0, None)], np.nan)
-                candidates = _centred(policy, per_point, ap.candidates)
+                candidates = model if policy.captured is None else _centred(policy, per_point, ap.candidates)
                 curves[name].append(score_scene(candidates, record, ap)[0]["AP"])
                 known = np.all(np.isfinite(centres), axis=1)
                 errors[name].append(np.linalg.norm((centres - truth)[known, :2], axis=1))
