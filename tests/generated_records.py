@@ -1,4 +1,5 @@
-"""One tiny generated dataset and its records, for the tests that turn them into SuctionNet trees."""
+"""Tiny generated datasets: their records, for the tests that turn them into SuctionNet trees, and the smallest
+dataset a policy's evaluation reads."""
 
 from __future__ import annotations
 
@@ -18,3 +19,13 @@ def generate_records(out: Path, **config: Any) -> list[dict[str, Any]]:
         return [store.scene(i) for i in range(len(store))]
     finally:
         store.close()
+
+
+TINY = dict(scenes=2, min_parcels=3, max_parcels=3, width=160, height=120, annotation_points=512, scenes_per_shard=2)
+
+
+def generate_tiny(out: Path, **config: Any) -> Path:
+    """Two scenes of three parcels at 160 x 120 (``TINY``, ``config`` overriding it) into ``out``, one process, no
+    progress bar; returns ``out``."""
+    generate(out, GenerationConfig(**{**TINY, **config}), workers=1, progress=False)
+    return out

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dataset.config import GenerationConfig
-from dataset.generate import generate
+from generated_records import generate_tiny
+
 from eval.centre_bound import (CentreBoundConfig, _centred, _ChannelCapture, centre_bound, jittered_centres, main,
                                visible_top_centres)
 from parcelpick_env.suction.quality import definition_config
@@ -17,10 +17,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    root = tmp_path_factory.mktemp("centre_bound") / "data"
-    generate(root, GenerationConfig(scenes=2, split="test", seed=5, min_parcels=3, max_parcels=3, width=160,
-                                    height=120, annotation_points=512, scenes_per_shard=2), workers=1, progress=False)
-    return root
+    return generate_tiny(tmp_path_factory.mktemp("centre_bound") / "data", split="test", seed=5)
 
 
 def test_a_parcels_error_moves_its_centre_horizontally_once_and_reproducibly():

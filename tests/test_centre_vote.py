@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from dataset.config import GenerationConfig
-from dataset.generate import generate
+from generated_records import generate_tiny
+
 from dataset.scene_record import scene_from_record
 from dataset.storage import open_dataset
 from parcelpick_env.cli import run_cli
@@ -30,10 +30,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory):
-    root = tmp_path_factory.mktemp("centre_vote") / "data"
-    generate(root, GenerationConfig(scenes=2, split="train", seed=3, min_parcels=3, max_parcels=3, width=160,
-                                    height=120, annotation_points=512, scenes_per_shard=2), workers=1, progress=False)
-    return root
+    return generate_tiny(tmp_path_factory.mktemp("centre_vote") / "data", split="train", seed=3)
 
 
 @pytest.fixture(scope="module")
