@@ -474,24 +474,23 @@ class OraclePolicy(Policy):
         self.last_ratios: np.ndarray | None = None  # (K, 6) predicted ring ratios at rest of the returned picks
         self.last_object_ids: np.ndarray | None = None
         self.last_rehearsals: list[str] = []  # the outcome of each rehearsal of the last decision, in order
-        self._aimed_com: tuple[int, np.ndarray] | None = None  # (asset index, COM) of the last pick's parcel
-        self._aimed_pick: tuple[np.ndarray, np.ndarray] | None = None  # point and normal of the last proposed pick
+        # the last proposed pick: its point, its normal and its parcel's (asset index, COM), the failure's tag
+        self._aimed: tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]] | None = None
         self.failed = FailedPicks(forget_on_success=False, at_contact=False)  # the approaches that failed
 
     def reset(self, seed: int | None = None) -> None:
         """A new episode: forget which picks failed."""
-        self._aimed_com = None
-        self._aimed_pick = None
+        self._aimed = None
         self.failed.clear()
 
     def _note_outcome(self, info: Mapping[str, Any]) -> None:
         """A failed attempt (``info['outcome']``, which every policy sees) puts that parcel behind the others,
         so a deterministic oracle does not repeat a pick the cell could not do; and the failed approach itself
         (point and normal) behind the parcel's other approaches, so the last parcel left is tried another way."""
-        if self._aimed_pick is not None:  # each failure is tagged with its parcel: (asset index, COM)
-            self.failed.note(info, *self._aimed_pick, tag=self._aimed_com)
-        self._aimed_com = None
-        self._aimed_pick = None
+        if self._aimed is not None:  # each failure is tagged with its parcel: (asset index, COM)
+            point, normal, parcel = self._aimed
+            self.failed.note(info, point, normal, tag=parcel)
+        self._aimed = None
 
     def _context(self, info: Mapping[str, Any] | None) -> tuple[SuctionConfig, AssetLibrary]:
         info = info or {}
@@ -546,8 +545,7 @@ class OraclePolicy(Policy):
         self.last_object_ids = owner[order]
         k = int(owner[order[0]])
         index = -1 if truth.asset_index is None else int(truth.asset_index[k])
-        self._aimed_com = (index, truth.coms[k].copy())
-        self._aimed_pick = (points[order[0]].copy(), normals[order[0]].copy())
+        self._aimed = (points[order[0]].copy(), normals[order[0]].copy(), (index, truth.coms[k].copy()))
         rank = 1.0 - np.arange(len(order)) / len(order)
         return Candidates(points=points[order].astype(np.float32), normals=normals[order].astype(np.float32),
                           scores=rank.astype(np.float32))
