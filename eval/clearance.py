@@ -143,6 +143,9 @@ class EpisodeResult:
     replay: str | None
     wall_time_s: float
     attempt_log: list[dict[str, Any]] = field(default_factory=list)  # one attempt_record per attempt, in order
+    # parting pushes (action_mode="pose_push", the oracle's parting_pushes): no attempts, so kept apart; each
+    # record is attempt_record's with ``before``, the number of attempts made before it
+    push_log: list[dict[str, Any]] = field(default_factory=list)
 
 
 def episode_tasks(config: ClearanceConfig) -> list[EpisodeTask]:
@@ -227,6 +230,9 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
     if cfg.record_dir is not None:
         env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
     policy = episode_policy(cfg)
+    action_mode = getattr(policy, "action_mode", None)  # the oracle with parting pushes acts in "pose_push"
+    if action_mode is not None:
+        env_kwargs["action_mode"] = action_mode
 
     start = time.perf_counter()
     env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads
@@ -235,6 +241,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         policy.reset(task.seed)
         outcomes: Counter[str] = Counter()
         attempt_log: list[dict[str, Any]] = []
+        push_log: list[dict[str, Any]] = []
         first = True
         while info.get("reason") != "cleared":  # an empty pile needs no attempt
             action = _choose_action(policy, obs, info, env.unwrapped.action_space.shape)
@@ -243,7 +250,14 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 first = False
             audit = _audit(env.unwrapped, action) if cfg.audit_picks else None
             rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin
+            pushes_rehearsed = getattr(policy, "last_push_rehearsals", None)
             obs, _, terminated, truncated, info = env.step(action)
+            if is_push(action):
+                push_log.append({**attempt_record(info), "before": len(attempt_log),
+                                 **({"push_rehearsals": list(pushes_rehearsed)} if pushes_rehearsed else {})})
+                if terminated or truncated:
+                    break
+                continue
             outcomes[info["outcome"]] += 1
             record = attempt_record(info)
             if audit is not None:
@@ -261,7 +275,14 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         attempts=int(info["attempts"]), successes=int(info["successes"]),
         parcels_placed=int(info["parcels_placed"]), parcels_cleared=int(info["parcels_cleared"]),
         reason=str(info.get("reason", "truncated")), outcomes=dict(outcomes),
-        replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start, attempt_log=attempt_log)
+        replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start, attempt_log=attempt_log,
+        push_log=push_log)
+
+
+def is_push(action: np.ndarray) -> bool:
+    """Whether an action is a ``pose_push`` parting push (seven numbers, the last negative)."""
+    a = np.asarray(action)
+    return a.shape == (7,) and bool(a[6] < 0)
 
 
 def _audit(env, action: np.ndarray) -> dict[str, Any] | None:
@@ -311,23 +332,24 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
         key = f"{r.objects}/{r.layout}"
         members.setdefault(key, []).append(r)
         cell = cells.setdefault(key, {"objects": r.objects, "layout": r.layout, "attempts": 0, "successes": 0,
-                                      "placed": 0, "cleared": 0, "episodes": 0, "outcomes": Counter(),
+                                      "placed": 0, "cleared": 0, "episodes": 0, "pushes": 0, "outcomes": Counter(),
                                       "failures": Counter(), "causes": Counter()})
         cell["attempts"] += r.attempts
         cell["successes"] += r.successes
         cell["placed"] += r.parcels_placed
         cell["cleared"] += r.parcels_cleared
         cell["episodes"] += 1
+        cell["pushes"] += len(r.push_log)
         cell["outcomes"].update(r.outcomes)
         cell["failures"].update(k for k in map(failure_kind, r.attempt_log) if k)
         cell["causes"].update(k for k in map(failure_detail, r.attempt_log) if k)
-    total: dict[str, Any] = {"attempts": 0, "successes": 0, "placed": 0, "cleared": 0, "episodes": 0}
+    total: dict[str, Any] = {"attempts": 0, "successes": 0, "placed": 0, "cleared": 0, "episodes": 0, "pushes": 0}
     counters: dict[str, Counter[str]] = {"outcomes": Counter(), "failures": Counter(), "causes": Counter()}
     for key, cell in cells.items():
         cell["R_grasp"] = 100.0 * cell["successes"] / max(cell["attempts"], 1)
         cell["R_object"] = 100.0 * cell["cleared"] / max(cell["placed"], 1)
         cell["intervals"] = _rate_intervals(members[key])
-        for k in ("attempts", "successes", "placed", "cleared", "episodes"):
+        for k in ("attempts", "successes", "placed", "cleared", "episodes", "pushes"):
             total[k] += cell[k]
         for k, counter in counters.items():
             counter.update(cell[k])
@@ -382,6 +404,8 @@ def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) 
             f"{where[kind]} {row['successes']}/{row['attempts']}" for kind, row in o["by_cover"].items())
             + "; on a covered parcel while a free one was left: "
               f"{o['by_cover'].get('covered', {}).get('while_free_left', 0)}")
+    if o.get("pushes"):
+        lines.append(f"Parting pushes (no attempts): {o['pushes']}")
     if (r := o.get("rehearsals")):
         lines.append(f"Rehearsed on the cell's twin: {r['held']} picks held there, {r['held_failed']} of them failed "
                      f"here; {r['unheld']} with none held there (dead ends), {r['unheld_succeeded']} of them "

@@ -8,7 +8,8 @@ hull, mass and centre of mass, the simulator's margin, the parcel's friction), i
 client, posed from the privileged ``state_dict`` observation. ``refusal`` asks ``PickExecutor.refusal`` there:
 the env's own plan, run on the same geometry without dynamics, the cell's verdict before it moves.
 ``rehearse`` runs the env's whole attempt there, dynamics and all (the seal, the hold, a neighbour's drag in
-the lift), then poses the twin again as observed. What it cannot know: the pile's contact history (the twin's
+the lift), then poses the twin again as observed; ``rehearse_push`` runs a parting push (``envs/push.py``) and
+returns the pile it leaves, as a ``state_dict`` the oracle can decide on. What it cannot know: the pile's contact history (the twin's
 contacts start fresh from float32 poses, so a chaotic lift may end otherwise in the env), and a custom scene's
 fixtures, which the ``state_dict`` does not carry.
 """
@@ -24,7 +25,8 @@ from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.custom_scene import box_asset
 from parcelpick_env.envs.grasp import Failure, PickExecutor, PickResult
-from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
+from parcelpick_env.envs.observation import asset_from_index, bin_from_vector, library_assets, state_dict
+from parcelpick_env.envs.push import push
 from parcelpick_env.robot.arm import Gen3Arm
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
@@ -104,6 +106,36 @@ class CellTwin:
             self._synced = None
             if obs is not None and library is not None:
                 self.sync(obs, library)
+
+    def rehearse_push(self, start: np.ndarray, direction: np.ndarray) -> tuple[PickResult, dict[str, Any] | None]:
+        """A parting push on the twin (``envs/push.py``), the pile then settled as the env settles it after a step,
+        and the ``state_dict`` of the pile it leaves (the synced observation with every parcel's pose and centre
+        of mass as they came to rest), or None where a parcel left the tote or the push did not run. The twin is
+        then posed again as synced."""
+        executor, scene = self._require()
+        obs, library = self._synced, self._library
+        try:
+            result = push(executor, scene, start, direction)
+            sim, grasp = executor.sim, self.config.grasp
+            with sim.physics_overrides(solver_iterations=grasp.carry_solver_iterations):
+                sim.settle([ps.body_id for ps in scene.parcels], max_steps=grasp.max_post_settle_steps)
+            after = None
+            inside = all(scene.bin.contains(ps.world_com())[0] for ps in self._posed(scene))
+            if result.outcome == "pushed" and inside and obs is not None and library is not None:
+                index = {asset_id: i for i, asset_id in enumerate(library_assets(library).ids)}
+                after = {**obs, **state_dict(scene, sim, index)}
+            return result, after
+        finally:
+            self._synced = None
+            if obs is not None and library is not None:
+                self.sync(obs, library)
+
+    def _posed(self, scene: Scene) -> list[ParcelState]:
+        """The scene's parcels with their poses read back from the twin's simulator."""
+        sim = self._require()[0].sim
+        for ps in scene.parcels:
+            ps.position, ps.orientation = sim.body_pose(ps.body_id)
+        return scene.parcels
 
     def lifts(self, point: np.ndarray, normal: np.ndarray, top: float) -> bool:
         """Whether the straight lift from the contact ``point`` up to height ``top``, tool on -``normal``, solves

@@ -54,6 +54,9 @@ How it picks, per parcel, on the true meshes:
    spread over those offered, until one does (at most ``rehearsals``; the least loaded success if none is
    clean). A perfect policy knows the physics too: what it still fails is where the cell's physics does not
    repeat itself from the same poses (the twin's contacts start fresh), or where nothing it rehearsed holds.
+6. Parting (``parting_pushes=True``, the env in ``action_mode="pose_push"``): where nothing it rehearsed holds, up
+   to ``push_trials`` pushes (``policies/parting.py``) are rehearsed on the twin, and the first after which a
+   pick holds on the pile the twin is left with is made instead of the pick (``act``, ``_parting_push``).
 
 ``scores`` in the returned ``Candidates`` encode that rank (1 for the first, falling linearly); the
 physical scores of the returned candidates are kept in ``last_scores`` and their parcels in
@@ -87,6 +90,7 @@ from parcelpick_env.suction.wrench import wrench_scores
 from policies.base import Candidates, Policy
 from policies.cell_twin import CellTwin
 from policies.failed_picks import FailedPicks
+from policies.parting import push_candidates
 
 STATE_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion", "parcel_com",
                                "parcel_mass", "parcel_asset_index", "parcel_extents", "parcel_friction", "bin")
@@ -143,6 +147,10 @@ class OracleConfig:
     # twin's verdict matched the cell's on 210 of the 214 picks of the cylindrical and mixed stacked grid, and
     # foresaw 13 of their 15 failures (eval/twin_agreement.py)
     rehearsals: int = 16
+    # where no rehearsal holds (a dead end of the heap) and the policy was made with parting_pushes=True (the env
+    # then runs in action_mode="pose_push"): this many parting pushes (policies/parting.py) are rehearsed on the
+    # twin, and the first after which one of its picks holds there is taken instead of the pick
+    push_trials: int = 16
     clean_peak: float = 1.0  # a rehearsed success whose ring ratios never passed this holds cleanly: taken at once
     reach_step: float = 0.05  # m between IK checks along the lift line
 
@@ -159,11 +167,11 @@ class OracleConfig:
             raise ValueError(f"OracleConfig needs 0 <= max_face_tilt_deg <= last_resort_face_tilt_deg <= 90, got "
                              f"{self.max_face_tilt_deg!r}, {self.last_resort_face_tilt_deg!r}")
         if (self.reach_checks < 1 or self.confirm_checks < 0 or self.spread_checks < 0 or not self.spread_reach >= 0
-                or self.rehearsals < 0 or not self.clean_peak > 0):
+                or self.rehearsals < 0 or not self.clean_peak > 0 or self.push_trials < 0):
             raise ValueError(f"OracleConfig needs reach_checks >= 1, confirm_checks >= 0, spread_checks >= 0, "
-                             f"spread_reach >= 0, rehearsals >= 0 and clean_peak > 0, got {self.reach_checks!r}, "
-                             f"{self.confirm_checks!r}, {self.spread_checks!r}, {self.spread_reach!r}, "
-                             f"{self.rehearsals!r}, {self.clean_peak!r}")
+                             f"spread_reach >= 0, rehearsals >= 0, clean_peak > 0 and push_trials >= 0, got "
+                             f"{self.reach_checks!r}, {self.confirm_checks!r}, {self.spread_checks!r}, "
+                             f"{self.spread_reach!r}, {self.rehearsals!r}, {self.clean_peak!r}, {self.push_trials!r}")
         if not 0.0 <= self.seal_floor <= self.min_seal <= 1.0:
             raise ValueError(f"OracleConfig needs 0 <= seal_floor <= min_seal <= 1, got {self.seal_floor!r}, "
                              f"{self.min_seal!r}")
@@ -454,9 +462,14 @@ class OraclePolicy(Policy):
     privileged = True
 
     def __init__(self, config: OracleConfig | None = None, suction: SuctionConfig | None = None,
-                 asset_seed: int | None = None) -> None:
+                 asset_seed: int | None = None, parting_pushes: bool = False) -> None:
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
+        if not isinstance(parting_pushes, bool):
+            raise ValueError(f"parting_pushes must be true or false, got {parting_pushes!r}")
+        # with parting pushes the oracle acts in the env's action_mode="pose_push" (eval/clearance.py makes it so)
+        self.parting_pushes = parting_pushes
+        self.action_mode = "pose_push" if parting_pushes else "pose"
         if suction is not None and not isinstance(suction, SuctionConfig):
             raise ValueError(f"suction must be a SuctionConfig, got {type(suction).__name__}")
         defaults = EnvConfig()
@@ -474,6 +487,7 @@ class OraclePolicy(Policy):
         self.last_ratios: np.ndarray | None = None  # (K, 6) predicted ring ratios at rest of the returned picks
         self.last_object_ids: np.ndarray | None = None
         self.last_rehearsals: list[str] = []  # the outcome of each rehearsal of the last decision, in order
+        self.last_push_rehearsals: list[str] = []  # the outcome of each push rehearsed at the last dead end
         # the last proposed pick: its point, its normal and its parcel's (asset index, COM), the failure's tag
         self._aimed: tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]] | None = None
         self.failed = FailedPicks(forget_on_success=False, at_contact=False)  # the approaches that failed
@@ -491,6 +505,45 @@ class OraclePolicy(Policy):
             point, normal, parcel = self._aimed
             self.failed.note(info, point, normal, tag=parcel)
         self._aimed = None
+
+    def act(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
+        """The best pick, as a ``pose`` action; with ``parting_pushes``, a ``pose_push`` action: that pick, or a
+        parting push where no rehearsal of the pick decision held and a rehearsed push leaves a pile where one
+        does (``_parting_push``)."""
+        pick = self.predict(obs, info, top_k=1).best_action()
+        if not self.parting_pushes:
+            return pick
+        pushed = self._parting_push(obs, info)
+        return np.append(pick, 1.0).astype(np.float32) if pushed is None else pushed
+
+    def _parting_push(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None) -> np.ndarray | None:
+        """A ``pose_push`` push action, or None. Only where the last decision rehearsed picks and none held: then
+        up to ``push_trials`` pushes (``policies/parting.py``) are rehearsed on the twin, and after each that
+        runs and keeps every parcel in the tote, the oracle decides again on the pile the twin was left with; the
+        first push after which one of those rehearsals holds is taken. Otherwise the decision stands as made."""
+        self.last_push_rehearsals = []
+        info = info or {}
+        if not self.last_rehearsals or "success" in self.last_rehearsals or int(info.get("pushes_left", 1)) < 1:
+            return None
+        decision = (self._aimed, self.last_rehearsals, self.last_scores, self.last_ratios, self.last_object_ids)
+        suction, library = self._context(info)
+        truth = ground_truth(obs, library)
+        for push in push_candidates(truth, pinned_parcels(truth), suction.cup_radius, self.config.push_trials):
+            self.twin.sync(obs, library)
+            result, after = self.twin.rehearse_push(push.start, push.direction)
+            self.last_push_rehearsals.append(result.outcome)
+            if after is None:
+                continue
+            self._aimed = None  # nothing to note for a rehearsal's decision
+            try:
+                self.predict(after, info, top_k=1)
+            except ValueError:
+                continue
+            if "success" in self.last_rehearsals:
+                self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
+                return np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
+        self._aimed, self.last_rehearsals, self.last_scores, self.last_ratios, self.last_object_ids = decision
+        return None
 
     def _context(self, info: Mapping[str, Any] | None) -> tuple[SuctionConfig, AssetLibrary]:
         info = info or {}

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
+from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks, is_push,
                             evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise,
                             tool_check_applies, tool_check_line, tool_check_settings)
 from fresh_process import in_fresh_process
@@ -91,6 +92,24 @@ def test_summarise_pools_episodes_per_cell_and_overall():
     assert [ln.split(" | ")[0] for ln in lines[2:6]] == ["| rectangular", "| planar", "| cylindrical", "| mixed"]
     assert "R_grasp 40.00 [" in table and "R_object 66.67 [" in table and "(6/15 attempts, 6/9 parcels;" in table
     assert "unreachable 4" in table and "invalid_action 0" in table
+
+
+def test_parting_pushes_are_counted_apart_from_attempts():
+    """A pose_push push (the seventh number negative) is no attempt: the summary counts it under ``pushes``, and the
+    rates, outcomes and failures are the picks' alone."""
+    assert is_push(np.array([0, 0, 0.1, 1, 0, 0, -1.0])) and not is_push(np.array([0, 0, 0.1, 0, 0, 1, 0.0]))
+    assert not is_push(np.zeros(6))
+    pushed = _result("mixed", "stacked", 2, 2, 2, 2, {"success": 2})
+    pushed.push_log = [{"outcome": "pushed", "cause": None, "phase": None, "link": None, "condition": None,
+                        "body": None, "before": 1},
+                       {"outcome": "unreachable", "cause": None, "phase": "descend", "link": None,
+                        "condition": "blocked", "body": None, "before": 1}]
+    s = summarise([pushed, _result("mixed", "stacked", 3, 1, 3, 1, {"success": 1, "dropped": 2}, episode=1)])
+    cell, o = s["cells"]["mixed/stacked"], s["overall"]
+    assert (cell["pushes"], o["pushes"], o["attempts"], o["successes"]) == (2, 2, 5, 3)
+    assert o["outcomes"] == {"success": 3, "dropped": 2} and "unreachable: descend" not in o["failures"]
+    assert "Parting pushes (no attempts): 2" in format_table(s)
+    assert "Parting pushes" not in format_table(summarise([_result("mixed", "stacked", 1, 1, 1, 1, {"success": 1})]))
 
 
 def test_summarise_of_episode_without_attempts_is_not_a_division_by_zero():

@@ -22,7 +22,9 @@ from parcelpick_env.sim.config import SimConfig
 from parcelpick_env.suction.config import CELL_CUP_RADIUS, SuctionConfig
 from parcelpick_env.suction.cup import CARRY_LOAD_TARGET, CupSpec
 
-ACTION_MODES: tuple[str, ...] = ("pose", "pixel")
+# "pose_push": a pose action plus a seventh number whose sign chooses a pick (>= 0) or a parting push (< 0),
+# envs/push.py
+ACTION_MODES: tuple[str, ...] = ("pose", "pixel", "pose_push")
 # What the env observes (envs/observation.py): the camera cloud and images, the images only, or the
 # privileged ground truth (state_dict, for the oracle and state-based RL only).
 OBS_MODES: tuple[str, ...] = ("pointcloud", "rgbd", "state_dict")
@@ -64,6 +66,11 @@ class GraspConfig:
     control_dt_free: float = 1.0 / 30.0  # s between control waypoints of free-space moves
     max_post_settle_steps: int = 240  # cap on settling the pile after an attempt
     trace_interval: float = 1.0 / 15.0  # s of simulated time between arm/parcel poses kept for replays
+    # the parting push (action_mode="pose_push", envs/push.py): the tool, vacuum off, pushes this far sideways
+    push_distance: float = 0.10  # m of tool travel from where its descent ends
+    push_speed: float = 0.15  # m/s peak tool speed while pushing
+    push_touch_force: float = 5.0  # N on the tool that ends the push's descent (it has met something)
+    push_max_force: float = 60.0  # N on the tool that ends the push early (a parcel jammed against a wall)
 
     def __post_init__(self) -> None:
         if isinstance(self.cup, dict):  # a stored config (dataclasses.asdict) nests it as a dict
@@ -75,7 +82,8 @@ class GraspConfig:
                                         "hover_clearance", "hover_corridor", "control_dt_free", "trace_interval",
                                         "seal_dwell", "carry_dt", "lift_dt", "ready_height", "carry_load_target",
                                         "min_carry_acceleration", "carry_speed", "min_lift", "break_away",
-                                        "break_away_rise"))
+                                        "break_away_rise", "push_distance", "push_speed", "push_touch_force",
+                                        "push_max_force"))
         require(self.carry_dt <= 0.05, "GraspConfig", f"carry_dt must be <= 0.05 s, got {self.carry_dt}")
         require(self.lift_dt <= 0.05, "GraspConfig", f"lift_dt must be <= 0.05 s, got {self.lift_dt}")
         require(self.carry_load_target < 1.0, "GraspConfig",
@@ -120,6 +128,7 @@ class EnvConfig:
     asset_seed: int = 0  # which procedural asset library
     scene_factory: Callable[..., Any] | None = None
     action_margin: float = 0.05  # m: pose actions may lie this far outside the bin's inner box
+    max_pushes: int = 10  # parting pushes an episode allows (action_mode="pose_push"); more are invalid actions
 
     def __post_init__(self) -> None:
         owner = "EnvConfig"
@@ -129,6 +138,7 @@ class EnvConfig:
         require_positive_ints(self, ("num_points", "max_consecutive_failures", "record_points"))
         if self.max_attempts is not None:
             require_int(owner, "max_attempts", self.max_attempts, lo=1)
+        require_int(owner, "max_pushes", self.max_pushes, lo=0)
         require(self.action_margin >= 0, owner, f"action_margin must be >= 0, got {self.action_margin!r}")
         require(self.record_dir is None or isinstance(self.record_dir, (str, os.PathLike)), owner,
                 f"record_dir must be a directory path (str) or None, got {self.record_dir!r}")

@@ -356,12 +356,16 @@ class PickExecutor:
         self._report("retreat", t_start=t0)
 
     # ------------------------------------------------------------------------------------ attempt
-    def attempt(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> PickResult:
-        """One attempt at suction point ``point`` with outward unit ``normal`` (both world frame)."""
+    def begin(self) -> None:
+        """Fresh bookkeeping (trace, move reports, step count, clock) for one step's moves: a pick or a push."""
         arm = self.arm
         self._trace, self._next_trace, self._held, self._reports = [], arm.sim_time, None, []
         self._t0, self._dynamic_steps, self._move = arm.sim_time, 0, "plan"
         self._record()
+
+    def attempt(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> PickResult:
+        """One attempt at suction point ``point`` with outward unit ``normal`` (both world frame)."""
+        self.begin()
         pick = self._plan(scene, np.asarray(point, dtype=np.float64), np.asarray(normal, dtype=np.float64))
         if isinstance(pick, MoveReport):
             return self._result(pick.outcome, pick.failure)

@@ -13,6 +13,12 @@ Actions:
   the cup approaches along ``-normal`` (normalised here).
 - ``action_mode='pixel'``: Box(2) in [-1, 1] = (column, row) of the depth image; the point is the
   back-projected depth there and the normal the camera's estimate at that point.
+- ``action_mode='pose_push'``: Box(7) = a ``'pose'`` action and a kind in [-1, 1]: >= 0 picks as ``'pose'``
+  does; < 0 is a parting push (``push.py``): the tool, vacuum off, comes down to the point and moves
+  ``GraspConfig.push_distance`` along the vector's horizontal part. A push is no pick attempt:
+  ``info['pushes']`` counts them (at most ``max_pushes`` an episode, ``info['pushes_left']``; later ones are
+  invalid actions), its reward is 0, its outcome ``'pushed'`` when it ran, and it neither adds to nor clears
+  the run of consecutive failures.
 
 Any unusable action (wrong shape, NaN/inf, out of range, zero normal, a pixel without depth) is
 answered with ``outcome='invalid_action'`` and counts as a failed attempt; it never raises, so a
@@ -50,6 +56,7 @@ from parcelpick_env.camera.frame import CameraFrame
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.grasp import Failure, PickExecutor, PickResult
 from parcelpick_env.envs.observation import ObservationBuilder
+from parcelpick_env.envs.push import horizontal_direction, push
 from parcelpick_env.robot.arm import Gen3Arm
 from parcelpick_env.scene.scene import Scene
 from parcelpick_env.sim.simulator import Simulator
@@ -124,10 +131,12 @@ class ParcelPickEnv(gym.Env):
         self._observation = ObservationBuilder(cfg)  # the obs_mode's space and builder (envs/observation.py)
         self.observation_space = self._observation.space
         self._bin = cfg.bin
-        if cfg.action_mode == "pose":
+        if cfg.action_mode in ("pose", "pose_push"):
             lo, hi = self._bin_box()
-            self.action_space = spaces.Box(np.concatenate([lo, -np.ones(3)]).astype(np.float32),
-                                           np.concatenate([hi, np.ones(3)]).astype(np.float32), dtype=np.float32)
+            kind = 1 if cfg.action_mode == "pose_push" else 0  # the pick-or-push number
+            self.action_space = spaces.Box(np.concatenate([lo, -np.ones(3 + kind)]).astype(np.float32),
+                                           np.concatenate([hi, np.ones(3 + kind)]).astype(np.float32),
+                                           dtype=np.float32)
         else:
             self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
 
@@ -170,6 +179,8 @@ class ParcelPickEnv(gym.Env):
             "R_grasp": s["successes"] / s["attempts"] if s["attempts"] else 0.0,
             "R_object": s["cleared"] / s["placed"] if s["placed"] else 0.0,
             "consecutive_failures": s["consecutive"],
+            "pushes": s["pushes"],  # parting pushes so far (action_mode="pose_push"); never pick attempts
+            "pushes_left": self.config.max_pushes - s["pushes"],  # before a push is an invalid action
             "intrinsics": frame.intrinsics.copy(), "extrinsics": frame.extrinsics.copy(),
             "workspace": self._bin.workspace(),  # the cell's known geometry (bin floor and walls), not ground truth
             "scene_seed": scene.seed,
@@ -178,8 +189,9 @@ class ParcelPickEnv(gym.Env):
         info.update(extra)
         return info
 
-    def _parse_action(self, action: Any) -> tuple[np.ndarray | None, np.ndarray | None, str | None]:
-        """(point, unit normal, None) or (None, None, why it is invalid).
+    def _parse_action(self, action: Any) -> tuple[np.ndarray | None, np.ndarray | None, str | None, bool]:
+        """(point, unit normal or push direction, None, whether it is a push) or (None, None, why it is invalid,
+        False).
 
         Only real numbers are actions: numpy would turn "0.1", True and 1+0j into floats and the arm would
         execute them, so strings, booleans and complex values are refused before any conversion.
@@ -187,27 +199,30 @@ class ParcelPickEnv(gym.Env):
         if isinstance(action, (list, tuple)) or (isinstance(action, np.ndarray) and action.dtype == object):
             items = np.asarray(action, dtype=object).ravel()
             if not all(isinstance(x, Real) and not isinstance(x, (bool, np.bool_)) for x in items):
-                return None, None, "not numeric (strings, booleans and complex numbers are refused)"
+                return None, None, "not numeric (strings, booleans and complex numbers are refused)", False
         elif np.asarray(action).dtype.kind not in "iuf":  # arrays, tensors and scalars: by dtype
-            return None, None, f"not numeric (dtype {np.asarray(action).dtype} refused)"
+            return None, None, f"not numeric (dtype {np.asarray(action).dtype} refused)", False
         try:
             a = np.asarray(action, dtype=np.float64)
         except (TypeError, ValueError):
-            return None, None, "not numeric"
+            return None, None, "not numeric", False
         if a.shape != self.action_space.shape:
-            return None, None, f"shape {a.shape} != {self.action_space.shape}"
+            return None, None, f"shape {a.shape} != {self.action_space.shape}", False
         if not np.all(np.isfinite(a)):
-            return None, None, "NaN or inf"
+            return None, None, "NaN or inf", False
         lo, hi = self.action_space.low.astype(np.float64), self.action_space.high.astype(np.float64)
         if np.any(a < lo - 1e-6) or np.any(a > hi + 1e-6):
-            return None, None, "out of range"
-        if self.config.action_mode == "pose":
-            normal = a[3:]
-            norm = float(np.linalg.norm(normal))
-            if norm < 1e-6:
-                return None, None, "zero normal"
-            return a[:3], normal / norm, None
-        return self._pixel_to_pose(a)
+            return None, None, "out of range", False
+        if self.config.action_mode == "pixel":
+            return (*self._pixel_to_pose(a), False)
+        vector = a[3:6]
+        norm = float(np.linalg.norm(vector))
+        is_push = self.config.action_mode == "pose_push" and a[6] < 0
+        if is_push and horizontal_direction(vector) is None:
+            return None, None, "push direction has no horizontal part", False
+        if norm < 1e-6:
+            return None, None, "zero normal", False
+        return a[:3], vector / norm, None, is_push
 
     def _pixel_to_pose(self, a: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None, str | None]:
         frame = _after_reset(self.frame, "camera frame")
@@ -283,7 +298,7 @@ class ParcelPickEnv(gym.Env):
         self._episode += 1
         placed = len(self.scene.parcels)
         self._stats = {"attempts": 0, "successes": 0, "placed": placed, "cleared": 0, "lost": 0,
-                       "consecutive": 0, "done": placed == 0}
+                       "consecutive": 0, "pushes": 0, "done": placed == 0}
         obs = self._observe()
         if self.config.record_dir is not None:
             from parcelpick_env.envs.replay import EpisodeRecorder
@@ -301,8 +316,10 @@ class ParcelPickEnv(gym.Env):
         if self.scene is None:
             raise RuntimeError("call reset() before step()")
         s = self._stats
-        point, normal, why = self._parse_action(action)
-        s["attempts"] += 1
+        point, normal, why, is_push = self._parse_action(action)
+        if is_push and s["pushes"] >= self.config.max_pushes:
+            why, is_push = f"push limit reached ({self.config.max_pushes} an episode, EnvConfig.max_pushes)", False
+        s["pushes" if is_push else "attempts"] += 1
         extra: dict[str, Any] = {}
         if why is not None:
             result = PickResult("invalid_action", Failure("action", condition=why))
@@ -310,7 +327,9 @@ class ParcelPickEnv(gym.Env):
         elif point is None or normal is None:  # pragma: no cover - _parse_action gives a pose or a reason
             raise RuntimeError("ParcelPick env: the action parser returned neither a pose nor a reason")
         else:
-            result = _after_reset(self.executor, "pick executor").attempt(self.scene, point, normal)
+            executor = _after_reset(self.executor, "pick executor")
+            result = (push(executor, self.scene, point, normal) if is_push
+                      else executor.attempt(self.scene, point, normal))
             if result.dynamic_steps > 0:
                 bodies = [ps.body_id for ps in self.scene.parcels if self.sim.has_body(ps.body_id)]
                 if bodies:  # the rest of the pile comes to rest (cheaper solver, as the pile builder does), all of
@@ -325,7 +344,7 @@ class ParcelPickEnv(gym.Env):
             s["cleared"] += 1
             s["consecutive"] = 0
             reward = 1.0
-        else:
+        elif not is_push:
             s["consecutive"] += 1
         obs = self._observe()
         reason = None
@@ -338,7 +357,7 @@ class ParcelPickEnv(gym.Env):
             truncated, reason = True, "max_attempts"
         info = self._info(**step_info(result), reason=reason, **extra)
         if self.recorder is not None:
-            k = s["attempts"]
+            k = s["attempts"] + s["pushes"]  # the step's index on the replay's timeline
             self.recorder.log_action(k, point, normal)
             self.recorder.log_result(k, result, link_chain=self._link_chain if self.arm else None,
                                      metrics={"R_grasp": info["R_grasp"], "R_object": info["R_object"],

@@ -1,0 +1,104 @@
+"""The oracle's parting pushes (policies/parting.py, CellTwin.rehearse_push, OraclePolicy(parting_pushes=True)):
+where the pushes start, the twin's push against the env's, and a push taken only where no pick holds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from parcelpick_env.assets.library import AssetLibrary
+from parcelpick_env.camera.config import CameraConfig
+from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
+from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+from policies.cell_twin import CellTwin
+from policies.oracle import OraclePolicy, ground_truth, pinned_parcels
+from policies.parting import ABOVE_BOTTOM, BELOW_TOP, SIDE_GAP, push_candidates
+
+SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256, obs_mode="state_dict")
+# a flat carton on the floor with a smaller one lying on it, and a tall one beside them
+PILE = BoxScene([PlacedBox((0.24, 0.18, 0.06), 0.6, (-0.05, 0.0)),
+                 PlacedBox((0.12, 0.10, 0.05), 0.3, (-0.05, 0.0), z=0.06),
+                 PlacedBox((0.10, 0.10, 0.16), 0.4, (0.20, 0.05))])
+CUP_RADIUS = 0.02
+
+
+@pytest.fixture(scope="module")
+def cell():
+    env = ParcelPickEnv(scene_factory=PILE, action_mode="pose_push", **SMALL)
+    obs, info = env.reset(seed=0)
+    library = AssetLibrary.default(int(info["asset_seed"]))
+    twin = CellTwin()
+    twin.sync(obs, library)
+    yield env, obs, library, twin
+    twin.close()
+    env.close()
+
+
+def test_pushes_start_beside_the_free_parcels_first_the_highest_first(cell):
+    _, obs, library, _ = cell
+    truth = ground_truth(obs, library)
+    pinned = pinned_parcels(truth)
+    assert pinned.tolist() == [True, False, False]  # the small carton lies on the flat one
+    pushes = push_candidates(truth, pinned, CUP_RADIUS, limit=12)
+    # by the centre of mass: the small carton's (8.5 cm up) above the tall one's (8 cm); the pinned one last
+    assert len(pushes) == 12 and [p.parcel for p in pushes] == [1] * 4 + [2] * 4 + [0] * 4
+    for p in pushes:
+        lo, hi = truth.meshes[p.parcel].bounds
+        d = p.direction
+        assert abs(np.linalg.norm(d) - 1) < 1e-12 and d[2] == 0
+        # the cup's side stands SIDE_GAP off the box's face it pushes, at its height band
+        face = np.where(d > 0, lo, hi)  # the face the push meets first
+        assert float((face - p.start)[:2] @ d[:2]) == pytest.approx(CUP_RADIUS + SIDE_GAP)
+        centre = (lo + hi) / 2  # and the push goes through the box's centre line
+        v = (centre - p.start)[:2]
+        assert float(d[0] * v[1] - d[1] * v[0]) == pytest.approx(0.0, abs=1e-9)
+        assert p.start[2] == pytest.approx(max(lo[2] + ABOVE_BOTTOM, hi[2] - BELOW_TOP))
+    assert len(push_candidates(truth, pinned, CUP_RADIUS, limit=5)) == 5
+
+
+def test_the_twins_push_leaves_the_pile_the_envs_push_leaves(cell):
+    """The tall carton pushed 10 cm along +x on the twin and in the env ends in the same place (to a millimetre),
+    the twin's state after it says so, and the twin is posed again as synced."""
+    env, obs, library, twin = cell
+    truth = ground_truth(obs, library)
+    push = next(p for p in push_candidates(truth, pinned_parcels(truth), CUP_RADIUS, 12)
+                if p.parcel == 2 and p.direction[0] > 0)
+    result, after = twin.rehearse_push(push.start, push.direction)
+    assert result.outcome == "pushed" and after is not None
+    before = obs["parcel_position"][2].astype(np.float64)
+    moved_twin = after["parcel_position"][2] - before
+    assert 0.07 < moved_twin[0] < 0.11 and abs(moved_twin[1]) < 0.01
+    np.testing.assert_allclose(after["parcel_position"][:2], obs["parcel_position"][:2], atol=2e-3)  # the others stay
+    body = twin.scene.parcels[2].body_id
+    np.testing.assert_allclose(twin._executor.sim.body_pose(body)[0], before, atol=1e-5)  # posed again as synced
+    _, _, _, _, info = env.step(np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32))
+    assert info["outcome"] == "pushed"
+    np.testing.assert_allclose(env.sim.body_pose(env.scene.parcels[2].body_id)[0], after["parcel_position"][2],
+                               atol=1e-3)
+
+
+def test_the_oracle_pushes_only_where_no_pick_holds():
+    """On a pile where a pick holds the oracle picks (the seventh number >= 0) and rehearses no push; with its
+    rehearsals all failed (as at a dead end), it rehearses pushes on the twin and acts on one only if a pick holds
+    after it."""
+    env = ParcelPickEnv(scene_factory=PILE, action_mode="pose_push", **SMALL)
+    oracle = OraclePolicy(parting_pushes=True)
+    try:
+        obs, info = env.reset(seed=0)
+        action = oracle.act(obs, info)
+        assert action.shape == (7,) and action[6] >= 0 and oracle.last_push_rehearsals == []
+        assert "success" in oracle.last_rehearsals
+        oracle.last_rehearsals = ["dropped"]  # as if every rehearsal of this decision had failed
+        pushed = oracle._parting_push(obs, info)
+        assert oracle.last_push_rehearsals  # pushes were rehearsed
+        assert pushed is not None and pushed.shape == (7,) and pushed[6] < 0
+        assert "success" in oracle.last_rehearsals  # a pick held on the pile the push left
+        oracle.last_rehearsals = ["dropped"]
+        assert oracle._parting_push(obs, {**info, "pushes_left": 0}) is None  # none left: the pick stands
+        assert oracle.last_push_rehearsals == []
+        assert oracle.action_mode == "pose_push" and OraclePolicy().action_mode == "pose"
+    finally:
+        oracle.twin.close()
+        env.close()
+    with pytest.raises(ValueError, match="parting_pushes"):
+        OraclePolicy(parting_pushes="yes")
