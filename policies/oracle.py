@@ -528,7 +528,9 @@ class OraclePolicy(Policy):
         decision = (self._aimed, self.last_rehearsals, self.last_scores, self.last_ratios, self.last_object_ids)
         suction, library = self._context(info)
         truth = ground_truth(obs, library)
-        for push in push_candidates(truth, pinned_parcels(truth), suction.cup_radius, self.config.push_trials):
+        lo, hi = bin_from_vector(obs["bin"]).workspace(margin=EnvConfig().action_margin)  # the env's action box
+        for push in push_candidates(truth, pinned_parcels(truth), suction.cup_radius, self.config.push_trials,
+                                    (lo, hi)):
             self.twin.sync(obs, library)
             result, after = self.twin.rehearse_push(push.start, push.direction)
             self.last_push_rehearsals.append(result.outcome)

@@ -34,9 +34,12 @@ class PushCandidate:
     direction: np.ndarray  # (3,)
 
 
-def push_candidates(truth: "GroundTruth", pinned: np.ndarray, cup_radius: float, limit: int) -> list[PushCandidate]:
+def push_candidates(truth: "GroundTruth", pinned: np.ndarray, cup_radius: float, limit: int,
+                    bounds: tuple[np.ndarray, np.ndarray] | None = None) -> list[PushCandidate]:
     """Up to ``limit`` pushes: the parcels nothing rests on first (``pinned`` False), the highest first, then the
-    pinned ones, highest first; each pushed from beside its world bounding box in the four ``PUSH_DIRECTIONS``."""
+    pinned ones, highest first; each pushed from beside its world bounding box in the four ``PUSH_DIRECTIONS``.
+    With ``bounds`` (the env's action box, ``BinSpec.workspace``), a start outside it is left out: the env would
+    refuse it as an invalid action (beside a parcel against a wall it lies beyond the wall)."""
     heights = truth.coms[:, 2] if len(truth.meshes) else np.zeros(0)
     order = sorted(range(len(truth.meshes)), key=lambda k: (bool(pinned[k]), -float(heights[k])))
     out: list[PushCandidate] = []
@@ -48,6 +51,8 @@ def push_candidates(truth: "GroundTruth", pinned: np.ndarray, cup_radius: float,
             reach = float(np.abs(d[:2]) @ half[:2]) + cup_radius + SIDE_GAP
             start = centre - reach * d
             start[2] = z
+            if bounds is not None and (np.any(start < bounds[0]) or np.any(start > bounds[1])):
+                continue
             out.append(PushCandidate(k, start, d.copy()))
             if len(out) == limit:
                 return out

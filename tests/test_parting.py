@@ -54,6 +54,11 @@ def test_pushes_start_beside_the_free_parcels_first_the_highest_first(cell):
         assert float(d[0] * v[1] - d[1] * v[0]) == pytest.approx(0.0, abs=1e-9)
         assert p.start[2] == pytest.approx(max(lo[2] + ABOVE_BOTTOM, hi[2] - BELOW_TOP))
     assert len(push_candidates(truth, pinned, CUP_RADIUS, limit=5)) == 5
+    # with the env's action box, a start beyond it is left out: the tall carton's push from its +x side starts
+    # the tall carton pushed from its +x side starts at x = 0.28, past a box cut at x = 0.26
+    lo, hi = np.array([-0.4, -0.3, -0.05]), np.array([0.26, 0.3, 1.0])
+    boxed = push_candidates(truth, pinned, CUP_RADIUS, limit=12, bounds=(lo, hi))
+    assert len(boxed) == 11 and all(np.all(p.start >= lo) and np.all(p.start <= hi) for p in boxed)
 
 
 def test_the_twins_push_leaves_the_pile_the_envs_push_leaves(cell):
