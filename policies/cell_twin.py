@@ -9,9 +9,9 @@ client, posed from the privileged ``state_dict`` observation. ``refusal`` asks `
 the env's own plan, run on the same geometry without dynamics, the cell's verdict before it moves.
 ``rehearse`` runs the env's whole attempt there, dynamics and all (the seal, the hold, a neighbour's drag in
 the lift), then poses the twin again as observed; ``rehearse_push`` runs a parting push (``envs/push.py``) and
-returns the pile it leaves, as a ``state_dict`` the oracle can decide on. What it cannot know: the pile's contact history (the twin's
-contacts start fresh from float32 poses, so a chaotic lift may end otherwise in the env), and a custom scene's
-fixtures, which the ``state_dict`` does not carry.
+returns the pile it leaves, as a ``state_dict`` the oracle can decide on. What it cannot know: the pile's contact
+history (the twin's contacts start fresh from float32 poses, so a chaotic lift may end otherwise in the env), and
+a custom scene's fixtures, which the ``state_dict`` does not carry.
 """
 
 from __future__ import annotations
@@ -116,26 +116,17 @@ class CellTwin:
         obs, library = self._synced, self._library
         try:
             result = push(executor, scene, start, direction)
-            sim, grasp = executor.sim, self.config.grasp
-            with sim.physics_overrides(solver_iterations=grasp.carry_solver_iterations):
-                sim.settle([ps.body_id for ps in scene.parcels], max_steps=grasp.max_post_settle_steps)
-            after = None
-            inside = all(scene.bin.contains(ps.world_com())[0] for ps in self._posed(scene))
-            if result.outcome == "pushed" and inside and obs is not None and library is not None:
-                index = {asset_id: i for i, asset_id in enumerate(library_assets(library).ids)}
-                after = {**obs, **state_dict(scene, sim, index)}
-            return result, after
+            executor.settle_pile(scene)
+            if result.outcome != "pushed" or obs is None or library is None:
+                return result, None
+            index = {asset_id: i for i, asset_id in enumerate(library_assets(library).ids)}
+            after = {**obs, **state_dict(scene, executor.sim, index)}  # poses and centres of mass read live
+            inside = scene.bin.contains(after["parcel_com"][: len(scene.parcels)].astype(np.float64))
+            return result, after if bool(np.all(inside)) else None
         finally:
             self._synced = None
             if obs is not None and library is not None:
                 self.sync(obs, library)
-
-    def _posed(self, scene: Scene) -> list[ParcelState]:
-        """The scene's parcels with their poses read back from the twin's simulator."""
-        sim = self._require()[0].sim
-        for ps in scene.parcels:
-            ps.position, ps.orientation = sim.body_pose(ps.body_id)
-        return scene.parcels
 
     def lifts(self, point: np.ndarray, normal: np.ndarray, top: float) -> bool:
         """Whether the straight lift from the contact ``point`` up to height ``top``, tool on -``normal``, solves

@@ -363,6 +363,15 @@ class PickExecutor:
         self._t0, self._dynamic_steps, self._move = arm.sim_time, 0, "plan"
         self._record()
 
+    def settle_pile(self, scene: Scene) -> None:
+        """After a step that ran dynamics, the rest of the pile comes to rest (cheaper solver, as the pile builder
+        does), all of it awake: a parcel the step left balanced at rest may still topple (docs/cell.md). The env
+        and the oracle's twin (``CellTwin.rehearse_push``) settle alike."""
+        bodies = [ps.body_id for ps in scene.parcels if self.sim.has_body(ps.body_id)]
+        if bodies:
+            with self.sim.physics_overrides(solver_iterations=self.grasp.carry_solver_iterations):
+                self.sim.settle(bodies, max_steps=self.grasp.max_post_settle_steps)
+
     def attempt(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> PickResult:
         """One attempt at suction point ``point`` with outward unit ``normal`` (both world frame)."""
         self.begin()

@@ -331,11 +331,7 @@ class ParcelPickEnv(gym.Env):
             result = (push(executor, self.scene, point, normal) if is_push
                       else executor.attempt(self.scene, point, normal))
             if result.dynamic_steps > 0:
-                bodies = [ps.body_id for ps in self.scene.parcels if self.sim.has_body(ps.body_id)]
-                if bodies:  # the rest of the pile comes to rest (cheaper solver, as the pile builder does), all of
-                    # it awake: a parcel the attempt left balanced at rest may still topple (docs/cell.md)
-                    with self.sim.physics_overrides(solver_iterations=self.config.grasp.carry_solver_iterations):
-                        self.sim.settle(bodies, max_steps=self.config.grasp.max_post_settle_steps)
+                executor.settle_pile(self.scene)
             lost = self._drop_departed()
             s["lost"] += lost
         reward = 0.0
