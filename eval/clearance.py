@@ -230,9 +230,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
     if cfg.record_dir is not None:
         env_kwargs["record_dir"] = str(Path(cfg.record_dir) / f"{task.objects}-{task.layout}-ep{task.episode:03d}")
     policy = episode_policy(cfg)
-    action_mode = getattr(policy, "action_mode", None)  # the oracle with parting pushes acts in "pose_push"
-    if action_mode is not None:
-        env_kwargs["action_mode"] = action_mode
+    env_kwargs["action_mode"] = policy.action_mode  # the oracle, with its parting pushes, acts in "pose_push"
 
     start = time.perf_counter()
     env = gym.make("ParcelPick-v0", **env_kwargs, obs_mode=obs_mode_of(policy))  # what the policy reads
@@ -286,12 +284,13 @@ def is_push(action: np.ndarray) -> bool:
 
 
 def _audit(env, action: np.ndarray) -> dict[str, Any] | None:
-    """The pick's audit (eval/pick_audit.py), or None where there is no pick to read (a pixel action, or none)."""
+    """The pick's audit (eval/pick_audit.py), or None where there is no pick to read (a pixel action, a parting
+    push, or none). A ``pose_push`` pick is its first six numbers, the ``pose`` action it stands for."""
     from eval.pick_audit import audit_pick
 
-    if env.config.action_mode != "pose" or not np.all(np.isfinite(action)):
+    if env.config.action_mode not in ("pose", "pose_push") or is_push(action) or not np.all(np.isfinite(action)):
         return None
-    return audit_pick(env, action).to_dict()
+    return audit_pick(env, np.asarray(action)[:6]).to_dict()
 
 
 def _choose_action(policy, obs, info, shape) -> np.ndarray:

@@ -84,7 +84,7 @@ def episode_verdicts(task: EpisodeTask) -> list[Verdicts]:
     from policies.oracle import OracleConfig, OraclePolicy
 
     env = gym.make("ParcelPick-v0", **episode_env_kwargs(task), obs_mode="state_dict")
-    oracle = OraclePolicy(OracleConfig(rehearsals=0))
+    oracle = OraclePolicy(OracleConfig(rehearsals=0), parting_pushes=False)  # the twin's verdicts on picks alone
     out: list[Verdicts] = []
     try:
         obs, info = env.reset(seed=task.seed)

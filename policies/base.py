@@ -32,6 +32,7 @@ class Policy(ABC):
 
     name: str = "policy"
     obs_mode: str = "pointcloud"  # the env observation mode it needs (parcelpick_env/envs/observation.py)
+    action_mode: str = "pose"  # the env action mode its ``act`` answers in (the oracle's parting pushes: "pose_push")
 
     @abstractmethod
     def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,

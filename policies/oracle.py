@@ -54,9 +54,11 @@ How it picks, per parcel, on the true meshes:
    spread over those offered, until one does (at most ``rehearsals``; the least loaded success if none is
    clean). A perfect policy knows the physics too: what it still fails is where the cell's physics does not
    repeat itself from the same poses (the twin's contacts start fresh), or where nothing it rehearsed holds.
-6. Parting (``parting_pushes=True``, the env in ``action_mode="pose_push"``): where nothing it rehearsed holds, up
-   to ``push_trials`` pushes (``policies/parting.py``) are rehearsed on the twin, and the first after which a
-   pick holds on the pile the twin is left with is made instead of the pick (``act``, ``_parting_push``).
+6. Parting (by default, the env in ``action_mode="pose_push"``; ``parting_pushes=False`` gives the pick-only
+   oracle, in ``pose``): where nothing it rehearsed holds, up to ``push_trials`` pushes (``policies/parting.py``)
+   are rehearsed on the twin, and the first after which a pick holds on the pile the twin is left with is made
+   instead of the pick (``act``, ``_parting_push``). A perfect picker in a real cell parts a pile it cannot pick
+   from; without it the 30-parcel heap ends in dead ends no pick can open (results/ORACLE.md, 'A parting move').
 
 ``scores`` in the returned ``Candidates`` encode that rank (1 for the first, falling linearly); the
 physical scores of the returned candidates are kept in ``last_scores`` and their parcels in
@@ -147,9 +149,9 @@ class OracleConfig:
     # twin's verdict matched the cell's on 210 of the 214 picks of the cylindrical and mixed stacked grid, and
     # foresaw 13 of their 15 failures (eval/twin_agreement.py)
     rehearsals: int = 16
-    # where no rehearsal holds (a dead end of the heap) and the policy was made with parting_pushes=True (the env
-    # then runs in action_mode="pose_push"): this many parting pushes (policies/parting.py) are rehearsed on the
-    # twin, and the first after which one of its picks holds there is taken instead of the pick
+    # where no rehearsal holds (a dead end of the heap) and the policy parts piles (parting_pushes, the default;
+    # the env then runs in action_mode="pose_push"): this many parting pushes (policies/parting.py) are rehearsed
+    # on the twin, and the first after which one of its picks holds there is taken instead of the pick
     push_trials: int = 16
     clean_peak: float = 1.0  # a rehearsed success whose ring ratios never passed this holds cleanly: taken at once
     reach_step: float = 0.05  # m between IK checks along the lift line
@@ -462,12 +464,13 @@ class OraclePolicy(Policy):
     privileged = True
 
     def __init__(self, config: OracleConfig | None = None, suction: SuctionConfig | None = None,
-                 asset_seed: int | None = None, parting_pushes: bool = False) -> None:
+                 asset_seed: int | None = None, parting_pushes: bool = True) -> None:
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
         if not isinstance(parting_pushes, bool):
             raise ValueError(f"parting_pushes must be true or false, got {parting_pushes!r}")
-        # with parting pushes the oracle acts in the env's action_mode="pose_push" (eval/clearance.py makes it so)
+        # with parting pushes the oracle acts in the env's action_mode="pose_push" (eval/clearance.py makes it so;
+        # an env made by hand must be too: Policy.action_mode)
         self.parting_pushes = parting_pushes
         self.action_mode = "pose_push" if parting_pushes else "pose"
         if suction is not None and not isinstance(suction, SuctionConfig):

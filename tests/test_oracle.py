@@ -145,10 +145,11 @@ def test_oracle_is_registered_and_the_only_reader_of_the_privileged_channel(monk
 def test_oracle_delivers_a_lone_carton():
     oracle = registry.make_policy("oracle")
     env = ParcelPickEnv(scene_factory=BoxScene([PlacedBox((0.25, 0.20, 0.12), 1.0, (0.05, -0.03), 0.4)]),
-                        obs_mode=registry.obs_mode_of(oracle), **SMALL)
+                        obs_mode=registry.obs_mode_of(oracle), action_mode=oracle.action_mode, **SMALL)
     try:
         obs, info = env.reset(seed=0)
         action = oracle.act(obs, info)
+        assert env.config.action_mode == "pose_push" and action[6] >= 0  # a pick, not a parting push
         np.testing.assert_allclose(action[:2], obs["parcel_com"][0, :2], atol=0.01)
         obs, reward, terminated, _, info = env.step(action)
         assert info["outcome"] == "success" and reward == 1.0

@@ -101,7 +101,8 @@ def test_the_oracle_pushes_only_where_no_pick_holds():
         oracle.last_rehearsals = ["dropped"]
         assert oracle._parting_push(obs, {**info, "pushes_left": 0}) is None  # none left: the pick stands
         assert oracle.last_push_rehearsals == []
-        assert oracle.action_mode == "pose_push" and OraclePolicy().action_mode == "pose"
+        assert oracle.action_mode == OraclePolicy().action_mode == "pose_push"  # pushes are the default
+        assert OraclePolicy(parting_pushes=False).action_mode == "pose"
     finally:
         oracle.twin.close()
         env.close()

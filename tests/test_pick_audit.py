@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eval.clearance import ClearanceConfig, episode_tasks, format_table, run_episode, summarise
+from eval.clearance import ClearanceConfig, _audit, episode_tasks, format_table, run_episode, summarise
 from eval.pick_audit import NO_PARCEL, audit_pick, audit_truth, cover_rates
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.scene.scene import BinSpec
@@ -48,6 +48,23 @@ def test_the_env_audit_reads_the_live_scene():
         assert audit_pick(env, np.array([*high[:2], high[2] + 0.04, 0.0, 0.0, 1.0])).covered is False
         with pytest.raises(ValueError, match="finite 'pose' action"):
             audit_pick(env, np.full(6, np.nan))
+    finally:
+        env.close()
+
+
+def test_a_pose_push_pick_is_audited_as_its_pose_and_a_push_is_not():
+    """The clearance audit in ``action_mode="pose_push"`` (the oracle's parting pushes): a pick (seventh number
+    >= 0) is audited as the ``pose`` action of its first six numbers; a push is no pick and has no audit."""
+    support = PlacedBox((0.30, 0.20, 0.10), 1.0, center=(0.0, 0.0, BinSpec().floor_z + 0.05))
+    env = ParcelPickEnv(scene_factory=BoxScene([support, support.resting_on_top((0.14, 0.12, 0.08), 0.5)]),
+                        action_mode="pose_push", **SMALL)
+    try:
+        env.reset(seed=0)
+        low = env.privileged_state()["parcel_position"][0].astype(np.float64)
+        corner = np.array([low[0] - 0.12, low[1] - 0.07, low[2] + 0.05, 0.0, 0.0, 1.0])
+        audited = _audit(env, np.append(corner, 1.0))
+        assert audited == audit_pick(env, corner).to_dict() and (audited["parcel"], audited["covered"]) == (0, True)
+        assert _audit(env, np.array([*corner[:3], 1.0, 0.0, 0.0, -1.0])) is None
     finally:
         env.close()
 

@@ -19,7 +19,7 @@ from eval.report import (TRAINED_VARIANTS, ReportConfig, ablation_table, compare
 from eval.report import orchestration
 from eval.report.config import CEILING, LABEL_ORACLE, PAPER_COMPAT_VARIANTS
 from eval.report.markdown import render_markdown
-from eval.report.tables import channel_cost_table, paper_compat_sentences, paper_compat_table
+from eval.report.tables import channel_cost_table, paper_compat_sentences, paper_compat_table, table_v
 from eval.stats import TIE
 from policies import registry
 from policies.base import Policy
@@ -116,6 +116,15 @@ def test_each_clearance_table_says_whether_the_method_acted_through_the_tool_che
     report["policies"]["diffusion"]["clearance"].update(tool_check=False, config={"tool_check": False})
     md = write_report(report, tmp_path / "off" / "RESULTS.md", tmp_path / "off" / "figs")["markdown"].read_text()
     assert "Acting on its top candidate as ranked (`--no-tool-check`)" in md and "through the cell's" not in md
+
+
+def test_table_v_counts_parting_pushes_apart_from_attempts():
+    """The oracle parts piles with pushes (no attempts): its Table V says how many, the rates are the picks'."""
+    summary = _clearance(3, 4, 3, 3)
+    assert "parting pushes" not in table_v({"clearance": summary}, ("rectangular",), ("scattered",))
+    episode = EpisodeResult(**{**summary["episodes"][0], "push_log": [attempt_record({"outcome": "pushed"})] * 2})
+    pushed = table_v({"clearance": summarise([episode])}, ("rectangular",), ("scattered",))
+    assert "(3/4 attempts, 3/3 parcels; 2 parting pushes, which are no attempts)." in pushed
 
 
 def test_differences_are_signed_and_rank_is_checked(report):

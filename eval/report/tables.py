@@ -237,8 +237,9 @@ def table_v(entry: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) -> str:
             cells.append("–" if paper is None else f"{paper[0]:.2f} / {paper[1]:.2f}")
         lines.append(f"| {obj} | " + " | ".join(cells) + " |")
     o = summary["overall"]
+    pushes = f"; {o['pushes']} parting pushes, which are no attempts" if o.get("pushes") else ""
     lines.append(f"\nOverall (ours): R_grasp {_ours(o, 'R_grasp')}%, R_object {_ours(o, 'R_object')}% "
-                 f"({o['successes']}/{o['attempts']} attempts, {o['cleared']}/{o['placed']} parcels).")
+                 f"({o['successes']}/{o['attempts']} attempts, {o['cleared']}/{o['placed']} parcels{pushes}).")
     return "\n".join(lines)
 
 
