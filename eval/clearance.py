@@ -28,6 +28,7 @@ if __package__ in (None, ""):  # allow `python eval/clearance.py` as well as `py
 
 from parcelpick_env.envs.grasp import OUTCOMES  # noqa: E402  (one list of pick outcomes, the env's)
 from parcelpick_env.envs.parcel_pick import NO_BODY  # noqa: E402  (info["failure"]["body"] when none)
+from parcelpick_env.envs.push import is_push_action  # noqa: E402  (the env's rule: a pick or a push)
 from eval.stats import bootstrap_ratio, format_interval  # noqa: E402
 from parcelpick_env.parallel import BACKENDS, parallel_map  # noqa: E402
 
@@ -250,7 +251,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
             rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin
             pushes_rehearsed = getattr(policy, "last_push_rehearsals", None)
             obs, _, terminated, truncated, info = env.step(action)
-            if is_push(action):
+            if is_push_action(action):
                 push_log.append({**attempt_record(info), "before": len(attempt_log),
                                  **({"push_rehearsals": list(pushes_rehearsed)} if pushes_rehearsed else {})})
                 if terminated or truncated:
@@ -277,18 +278,12 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         push_log=push_log)
 
 
-def is_push(action: np.ndarray) -> bool:
-    """Whether an action is a ``pose_push`` parting push (seven numbers, the last negative)."""
-    a = np.asarray(action)
-    return a.shape == (7,) and bool(a[6] < 0)
-
-
 def _audit(env, action: np.ndarray) -> dict[str, Any] | None:
     """The pick's audit (eval/pick_audit.py), or None where there is no pick to read (a pixel action, a parting
     push, or none). A ``pose_push`` pick is its first six numbers, the ``pose`` action it stands for."""
     from eval.pick_audit import audit_pick
 
-    if env.config.action_mode not in ("pose", "pose_push") or is_push(action) or not np.all(np.isfinite(action)):
+    if env.config.action_mode not in ("pose", "pose_push") or is_push_action(action) or not np.all(np.isfinite(action)):
         return None
     return audit_pick(env, np.asarray(action)[:6]).to_dict()
 

@@ -7,10 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks, is_push,
+from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
                             evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise,
                             tool_check_applies, tool_check_line, tool_check_settings)
 from fresh_process import in_fresh_process
+from parcelpick_env.envs.push import is_push_action
 from parcelpick_env.camera.config import CameraConfig
 from policies.tool_check import RETRY_RADIUS
 
@@ -97,8 +98,8 @@ def test_summarise_pools_episodes_per_cell_and_overall():
 def test_parting_pushes_are_counted_apart_from_attempts():
     """A pose_push push (the seventh number negative) is no attempt: the summary counts it under ``pushes``, and the
     rates, outcomes and failures are the picks' alone."""
-    assert is_push(np.array([0, 0, 0.1, 1, 0, 0, -1.0])) and not is_push(np.array([0, 0, 0.1, 0, 0, 1, 0.0]))
-    assert not is_push(np.zeros(6))
+    assert is_push_action(np.array([0, 0, 0.1, 1, 0, 0, -1.0])) and not is_push_action(np.array([0, 0, 0.1, 0, 0, 1, 0.0]))
+    assert not is_push_action(np.zeros(6))
     pushed = _result("mixed", "stacked", 2, 2, 2, 2, {"success": 2})
     pushed.push_log = [{"outcome": "pushed", "cause": None, "phase": None, "link": None, "condition": None,
                         "body": None, "before": 1},

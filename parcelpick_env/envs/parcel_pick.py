@@ -56,7 +56,7 @@ from parcelpick_env.camera.frame import CameraFrame
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.grasp import Failure, PickExecutor, PickResult
 from parcelpick_env.envs.observation import ObservationBuilder
-from parcelpick_env.envs.push import horizontal_direction, push
+from parcelpick_env.envs.push import horizontal_direction, is_push_action, push
 from parcelpick_env.robot.arm import Gen3Arm
 from parcelpick_env.scene.scene import Scene
 from parcelpick_env.sim.simulator import Simulator
@@ -217,7 +217,7 @@ class ParcelPickEnv(gym.Env):
             return (*self._pixel_to_pose(a), False)
         vector = a[3:6]
         norm = float(np.linalg.norm(vector))
-        is_push = self.config.action_mode == "pose_push" and a[6] < 0
+        is_push = self.config.action_mode == "pose_push" and is_push_action(a)
         if is_push and horizontal_direction(vector) is None:
             return None, None, "push direction has no horizontal part", False
         if norm < 1e-6:

@@ -19,6 +19,8 @@ is the outcome ``pushed``; it is not a pick attempt (docs/cell.md, 'The parting 
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from parcelpick_env.envs.grasp import Failure, PickExecutor, PickResult
@@ -27,6 +29,12 @@ from parcelpick_env.scene.scene import Scene
 
 PUSH_START_TOLERANCE = 0.01  # m: a descent that stops higher than this above the start refuses the push
 DOWN = np.array([0.0, 0.0, -1.0])  # the tool's axis throughout: cup first, straight down
+
+
+def is_push_action(action: np.ndarray) -> bool:
+    """Whether an action is a ``pose_push`` parting push: seven numbers, the last (the kind) negative."""
+    a = np.asarray(action)
+    return a.shape == (7,) and bool(a[6] < 0)
 
 
 def horizontal_direction(direction: np.ndarray) -> np.ndarray | None:
@@ -57,19 +65,16 @@ def push(executor: PickExecutor, scene: Scene, start: np.ndarray, direction: np.
         return ex._result(rep.outcome, rep.failure)
     dt = sim.config.timestep
 
-    def touched(contacts: list[Contact]) -> Contact | None:
-        return next((c for c in contacts if c.link in tool and c.normal_force > g.push_touch_force), None)
+    def pressing(force: float) -> Callable[[list[Contact]], Contact | None]:
+        """A stop rule: the first contact of a tool link pressing harder than ``force``."""
+        return lambda contacts: next((c for c in contacts if c.link in tool and c.normal_force > force), None)
 
-    failure = _driven_line(ex, "descend", start, g.approach_speed, stop=touched)
+    failure = _driven_line(ex, "descend", start, g.approach_speed, stop=pressing(g.push_touch_force))
     if failure is None and float(ex.kin.forward(arm.q)[0][2]) > start[2] + PUSH_START_TOLERANCE:
         failure = ("unreachable", Failure("descend", condition="blocked"))
     if failure is None:
         tip = ex.kin.forward(arm.q)[0]
-
-        def jammed(contacts: list[Contact]) -> Contact | None:
-            return next((c for c in contacts if c.link in tool and c.normal_force > g.push_max_force), None)
-
-        failure = _driven_line(ex, "push", tip + g.push_distance * d, g.push_speed, stop=jammed)
+        failure = _driven_line(ex, "push", tip + g.push_distance * d, g.push_speed, stop=pressing(g.push_max_force))
     # rise clear of the pile before going home: whatever the tool still touches is not judged on the way up
     tip = ex.kin.forward(arm.q)[0]
     up, _ = ex._line(arm.q, np.array([tip[0], tip[1], hover[2]]), DOWN, dt, g.approach_speed)
@@ -90,8 +95,9 @@ def _driven_line(ex: PickExecutor, move: str, end: np.ndarray, speed: float, sto
     ex._move = move
     line, why = ex._line(arm.q, end, DOWN, ex.sim.config.timestep, speed)
     if line is None:
-        ex._report(move, "unreachable", Failure(move, condition=why), t_start=t0)
-        return "unreachable", Failure(move, condition=why)
+        failure = Failure(move, condition=why)
+        ex._report(move, "unreachable", failure, t_start=t0)
+        return "unreachable", failure
     res = ex._execute(line, stop=stop, allowed_links=arm.tool_links | {arm.tip_link})
     if res.collision is not None:
         failure = Failure(move, res.link, body=res.collision.body)
