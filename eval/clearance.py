@@ -249,6 +249,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 first = False
             audit = _audit(env.unwrapped, action) if cfg.audit_picks else None
             rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin
+            confirmations = getattr(policy, "last_confirmations", None)  # ... and on its jittered twins
             pushes_rehearsed = getattr(policy, "last_push_rehearsals", None)
             obs, _, terminated, truncated, info = env.step(action)
             if is_push_action(action):
@@ -263,6 +264,8 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 record["audit"] = audit
             if rehearsals:
                 record["rehearsals"] = list(rehearsals)
+            if confirmations:
+                record["confirmations"] = list(confirmations)
             attempt_log.append(record)
             if terminated or truncated:
                 break

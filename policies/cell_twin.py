@@ -17,9 +17,11 @@ a custom scene's fixtures, which the ``state_dict`` does not carry.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
@@ -30,6 +32,27 @@ from parcelpick_env.envs.push import push
 from parcelpick_env.robot.arm import Gen3Arm
 from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
+
+
+@dataclass(frozen=True)
+class PoseJitter:
+    """A small random error on every parcel's pose, drawn from ``rng``: a position error of ``position`` (m,
+    standard deviation per axis) and a turn about a random axis of ``angle_deg`` (standard deviation per axis of
+    the rotation vector). The twin's poses are exact to float32, its contacts are not: they start fresh."""
+
+    rng: np.random.Generator
+    position: float
+    angle_deg: float
+
+    def apply(self, sim: Simulator, scene: Scene) -> None:
+        """Move every parcel of ``scene`` in ``sim`` by one draw (velocities zeroed), and its ``ParcelState``."""
+        n = len(scene.parcels)
+        shifts = self.rng.normal(0.0, self.position, size=(n, 3))
+        turns = Rotation.from_rotvec(self.rng.normal(0.0, np.radians(self.angle_deg), size=(n, 3)))
+        for parcel, shift, turn in zip(scene.parcels, shifts, turns):
+            parcel.position = np.asarray(parcel.position, dtype=np.float64) + shift
+            parcel.orientation = (turn * Rotation.from_quat(parcel.orientation)).as_quat()
+            sim.set_body_pose(parcel.body_id, parcel.position, parcel.orientation)
 
 
 class CellTwin:
@@ -95,11 +118,15 @@ class CellTwin:
         executor, scene = self._require()
         return executor.refusal(scene, point, normal)
 
-    def rehearse(self, point: np.ndarray, normal: np.ndarray) -> PickResult:
+    def rehearse(self, point: np.ndarray, normal: np.ndarray, jitter: PoseJitter | None = None) -> PickResult:
         """The whole attempt on the twin, dynamics and all (``PickExecutor.attempt``: seal, hold checks, the
-        neighbours' drag), as the env would run it from this pile; the twin is then posed again as synced."""
+        neighbours' drag), as the env would run it from this pile; the twin is then posed again as synced.
+        ``jitter`` first moves every parcel by a small random pose error (``PoseJitter``): a pick that holds
+        only on the pile exactly as synced is one the cell's own contact history may drop."""
         executor, scene = self._require()
         try:
+            if jitter is not None:
+                jitter.apply(executor.sim, scene)
             return executor.attempt(scene, point, normal)
         finally:
             obs, library = self._synced, self._library

@@ -90,7 +90,7 @@ from parcelpick_env.suction.physical import PhysicalGrasp
 from parcelpick_env.suction.scorer import SuctionScorer, SuctionScores
 from parcelpick_env.suction.wrench import wrench_scores
 from policies.base import Candidates, Policy
-from policies.cell_twin import CellTwin
+from policies.cell_twin import CellTwin, PoseJitter
 from policies.failed_picks import FailedPicks
 from policies.parting import push_candidates
 
@@ -154,6 +154,13 @@ class OracleConfig:
     # on the twin, and the first after which one of its picks holds there is taken instead of the pick
     push_trials: int = 16
     clean_peak: float = 1.0  # a rehearsed success whose ring ratios never passed this holds cleanly: taken at once
+    # a success that is not clean, or that follows a failed rehearsal of the same decision, is rehearsed again on
+    # this many twins with every parcel's pose jittered (``CellTwin.rehearse``, ``PoseJitter``: ``jitter_position``
+    # m and ``jitter_angle_deg`` standard deviations); the success held on the most of them, then the least loaded,
+    # is taken, and one held on all of them cleanly ends the search (0: none, every success taken as rehearsed)
+    confirmations: int = 0
+    jitter_position: float = 0.0005
+    jitter_angle_deg: float = 0.3
     reach_step: float = 0.05  # m between IK checks along the lift line
 
     def __post_init__(self) -> None:
@@ -169,11 +176,15 @@ class OracleConfig:
             raise ValueError(f"OracleConfig needs 0 <= max_face_tilt_deg <= last_resort_face_tilt_deg <= 90, got "
                              f"{self.max_face_tilt_deg!r}, {self.last_resort_face_tilt_deg!r}")
         if (self.reach_checks < 1 or self.confirm_checks < 0 or self.spread_checks < 0 or not self.spread_reach >= 0
-                or self.rehearsals < 0 or not self.clean_peak > 0 or self.push_trials < 0):
+                or self.rehearsals < 0 or not self.clean_peak > 0 or self.push_trials < 0 or self.confirmations < 0):
             raise ValueError(f"OracleConfig needs reach_checks >= 1, confirm_checks >= 0, spread_checks >= 0, "
-                             f"spread_reach >= 0, rehearsals >= 0, clean_peak > 0 and push_trials >= 0, got "
-                             f"{self.reach_checks!r}, {self.confirm_checks!r}, {self.spread_checks!r}, "
-                             f"{self.spread_reach!r}, {self.rehearsals!r}, {self.clean_peak!r}, {self.push_trials!r}")
+                             f"spread_reach >= 0, rehearsals >= 0, clean_peak > 0, push_trials >= 0 and "
+                             f"confirmations >= 0, got {self.reach_checks!r}, {self.confirm_checks!r}, "
+                             f"{self.spread_checks!r}, {self.spread_reach!r}, {self.rehearsals!r}, {self.clean_peak!r}, "
+                             f"{self.push_trials!r}, {self.confirmations!r}")
+        if not (self.jitter_position >= 0 and self.jitter_angle_deg >= 0):
+            raise ValueError(f"OracleConfig needs jitter_position >= 0 and jitter_angle_deg >= 0, got "
+                             f"{self.jitter_position!r}, {self.jitter_angle_deg!r}")
         if not 0.0 <= self.seal_floor <= self.min_seal <= 1.0:
             raise ValueError(f"OracleConfig needs 0 <= seal_floor <= min_seal <= 1, got {self.seal_floor!r}, "
                              f"{self.min_seal!r}")
@@ -491,13 +502,17 @@ class OraclePolicy(Policy):
         self.last_object_ids: np.ndarray | None = None
         self.last_rehearsals: list[str] = []  # the outcome of each rehearsal of the last decision, in order
         self.last_push_rehearsals: list[str] = []  # the outcome of each push rehearsed at the last dead end
+        # of each success of the last decision that was rehearsed again on jittered twins: how many held there
+        self.last_confirmations: list[int] = []
+        self._jitter_rng = np.random.default_rng(0)  # the twins' pose jitter; reseeded by reset(seed)
         # the last proposed pick: its point, its normal and its parcel's (asset index, COM), the failure's tag
         self._aimed: tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]] | None = None
         self.failed = FailedPicks(forget_on_success=False, at_contact=False)  # the approaches that failed
 
     def reset(self, seed: int | None = None) -> None:
-        """A new episode: forget which picks failed."""
+        """A new episode: forget which picks failed (and reseed the rehearsals' pose jitter)."""
         self._aimed = None
+        self._jitter_rng = np.random.default_rng(seed)
         self.failed.clear()
 
     def _note_outcome(self, info: Mapping[str, Any]) -> None:
@@ -528,7 +543,8 @@ class OraclePolicy(Policy):
         info = info or {}
         if not self.last_rehearsals or "success" in self.last_rehearsals or int(info.get("pushes_left", 1)) < 1:
             return None
-        decision = (self._aimed, self.last_rehearsals, self.last_scores, self.last_ratios, self.last_object_ids)
+        decision = (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_scores, self.last_ratios,
+                    self.last_object_ids)
         suction, library = self._context(info)
         truth = ground_truth(obs, library)
         lo, hi = bin_from_vector(obs["bin"]).workspace(margin=EnvConfig().action_margin)  # the env's action box
@@ -547,7 +563,8 @@ class OraclePolicy(Policy):
             if "success" in self.last_rehearsals:
                 self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
                 return np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
-        self._aimed, self.last_rehearsals, self.last_scores, self.last_ratios, self.last_object_ids = decision
+        (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_scores, self.last_ratios,
+         self.last_object_ids) = decision
         return None
 
     def _context(self, info: Mapping[str, Any] | None) -> tuple[SuctionConfig, AssetLibrary]:
@@ -564,6 +581,7 @@ class OraclePolicy(Policy):
         suction, library = self._context(info)
         self._note_outcome(info or {})
         self.last_rehearsals = []  # filled by _rehearsed_first; empty where this decision raises before it
+        self.last_confirmations = []
         if all(key in obs for key in LABEL_KEYS):
             return best_labelled(obs, top_k)
         truth = ground_truth(obs, library)
@@ -738,7 +756,8 @@ class OraclePolicy(Policy):
             return order
         others = self._each_parcels_best(order, owner, {int(owner[order[0]])})
         spread = self._spread(order, points, normals, c.rehearsals)
-        chosen, least = None, np.inf  # the least loaded success so far (a clean one ends the search)
+        jitter = PoseJitter(self._jitter_rng, c.jitter_position, c.jitter_angle_deg)
+        chosen, best = None, (-1, -np.inf)  # (jittered twins held, -peak) of the best success so far
         for n, i in enumerate(dict.fromkeys([int(order[0]), *others, *spread])):
             if n > 0 and self.twin.refusal(points[i], normals[i]) is not None:
                 continue  # the cell would not move for it (the first is rehearsed whatever: it is the fallback)
@@ -746,9 +765,15 @@ class OraclePolicy(Policy):
             self.last_rehearsals.append(result.outcome)
             if result.outcome == "success":
                 peak = max(result.peak_ratios.values(), default=0.0)
-                if peak < least:
-                    chosen, least = i, peak
-                if peak <= c.clean_peak:
+                clean = peak <= c.clean_peak
+                held = c.confirmations
+                if c.confirmations and not (clean and len(self.last_rehearsals) == 1):
+                    held = sum(self.twin.rehearse(points[i], normals[i], jitter).outcome == "success"
+                               for _ in range(c.confirmations))
+                    self.last_confirmations.append(held)
+                if (held, -peak) > best:
+                    chosen, best = i, (held, -peak)
+                if clean and held == c.confirmations:
                     break
             if len(self.last_rehearsals) == c.rehearsals:
                 break

@@ -96,6 +96,36 @@ def test_a_rehearsal_on_the_twin_ends_as_the_cells_attempt_and_leaves_the_twin_a
         env.close()
 
 
+def test_a_jittered_rehearsal_moves_every_parcel_by_about_the_asked_error_and_the_twin_is_synced_again_after(cell):
+    """``PoseJitter`` moves each parcel by a fresh draw (positions off by about ``position`` per axis, turned by about
+    ``angle_deg``), reproducibly from its generator; after a jittered rehearsal the twin stands as synced."""
+    from scipy.spatial.transform import Rotation
+
+    from policies.cell_twin import PoseJitter
+
+    _, _, twin = cell
+    sim = twin._executor.sim
+    before = [sim.body_pose(ps.body_id) for ps in twin.scene.parcels]
+    moved = []
+    for _ in range(2):
+        PoseJitter(np.random.default_rng(3), 0.002, 1.0).apply(sim, twin.scene)
+        moved.append([sim.body_pose(ps.body_id) for ps in twin.scene.parcels])
+        for ps, (pos, orn) in zip(twin.scene.parcels, before):  # back as synced
+            ps.position, ps.orientation = pos, orn
+            sim.set_body_pose(ps.body_id, pos, orn)
+    for (p0, q0), (p1, q1), (p2, q2) in zip(before, *moved):
+        np.testing.assert_allclose(p1, p2, atol=1e-12)  # the same generator state, the same draw
+        shift = np.linalg.norm(p1 - p0)
+        turn = np.degrees((Rotation.from_quat(q1) * Rotation.from_quat(q0).inv()).magnitude())
+        assert 1e-4 < shift < 0.012 and 0.02 < turn < 6.0
+    twin.rehearse(np.array([0.0, 0.0, 0.10]), np.array([0.0, 0.0, 1.0]),
+                  PoseJitter(np.random.default_rng(4), 0.002, 1.0))
+    for ps, (pos, orn) in zip(twin.scene.parcels, before):
+        now = sim.body_pose(ps.body_id)
+        np.testing.assert_allclose(now[0], pos, atol=1e-9)
+        np.testing.assert_allclose(np.abs(now[1] @ orn), 1.0, atol=1e-9)
+
+
 def test_the_twin_refuses_to_answer_before_it_is_synced():
     for ask in (lambda twin: twin.refusal(np.zeros(3), np.array([0.0, 0.0, 1.0])),
                 lambda twin: twin.lifts(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.5),

@@ -296,6 +296,53 @@ def test_oracle_takes_the_first_pick_that_holds_cleanly_in_a_rehearsal_on_the_tw
     assert rank({}, rehearsals=0) == (order.tolist(), [], [])
 
 
+def test_with_confirmations_the_oracle_takes_the_success_that_held_on_most_jittered_twins(monkeypatch):
+    """With ``confirmations`` = 2, a success that is not clean, or that follows a failed rehearsal, is rehearsed
+    again on two twins with the pile's poses jittered; the success held on the most of them goes first (then the
+    least loaded), and one held on both cleanly ends the search. A clean first success is taken at once, as without
+    them. The jittered rehearsals draw from the policy's own generator, which ``reset(seed)`` seeds."""
+    from parcelpick_env.envs.grasp import Failure, PickResult
+    from policies.cell_twin import PoseJitter
+    from policies.oracle import OracleConfig
+
+    owner = np.array([0, 1, 2, 3])
+    points = np.column_stack([np.arange(4.0), np.zeros(4), np.zeros(4)])
+    normals = np.tile([0.0, 0.0, 1.0], (4, 1))
+    order = np.arange(4)
+
+    def rank(nominal: dict[int, tuple[str, float]], jittered: dict[int, list[str]]):
+        policy = OraclePolicy(OracleConfig(confirmations=2))
+        policy.reset(7)
+        asked: list[tuple[int, bool]] = []
+        left = {k: list(v) for k, v in jittered.items()}
+
+        def rehearse(point, normal, jitter=None):
+            k = int(point[0])
+            asked.append((k, jitter is not None))
+            if jitter is None:
+                outcome, peak = nominal.get(k, ("dropped", 3.0))
+            else:
+                assert isinstance(jitter, PoseJitter) and jitter.rng is policy._jitter_rng
+                outcome, peak = left[k].pop(0), 0.5
+            return PickResult(outcome, None if outcome == "success" else Failure("lift"), peak_ratios={"x": peak})
+
+        monkeypatch.setattr(policy.twin, "rehearse", rehearse)
+        monkeypatch.setattr(policy.twin, "refusal", lambda point, normal: None)
+        return policy._rehearsed_first(order, points, normals, owner).tolist(), asked, policy.last_confirmations
+
+    # a clean first success: no jittered rehearsal
+    assert rank({0: ("success", 0.4)}, {}) == ([0, 1, 2, 3], [(0, False)], [])
+    # 1 holds as synced but on neither jittered twin; 2 holds on both, cleanly: 2 goes first and the search ends
+    ranked, asked, held = rank({1: ("success", 0.4), 2: ("success", 0.6)},
+                               {1: ["dropped", "dropped"], 2: ["success", "success"]})
+    assert ranked[0] == 2 and held == [0, 2] and (3, False) not in asked
+    assert asked == [(0, False), (1, False), (1, True), (1, True), (2, False), (2, True), (2, True)]
+    # a marginal success held on one jittered twin beats a cleaner one held on none
+    ranked, _, held = rank({1: ("success", 1.5), 3: ("success", 0.4)},
+                           {1: ["success", "dropped"], 3: ["dropped", "dropped"]})
+    assert ranked[0] == 1 and held == [1, 0]
+
+
 def carton_and_tray(carton: trimesh.Trimesh, rim_height: float):
     """Ground truth of ``carton`` (at x = -0.15, 0.5 kg) beside a 20 x 20 x 4 cm tray on the floor at x = 0.15 whose
     two 2 cm rims, ``rim_height`` tall, the convex hull bridges; the tray's top centre is (0.15, 0, 0.04)."""
@@ -404,7 +451,9 @@ def test_the_oracle_tool_probe_keeps_the_planners_clearance_between_true_surface
 
 
 @pytest.mark.parametrize("field, value", [("reach_checks", 0), ("confirm_checks", -1), ("probe_spacing", 0.0),
-                                          ("min_seal", 1.5), ("rehearsals", -1), ("clean_peak", 0.0)])
+                                          ("min_seal", 1.5), ("rehearsals", -1), ("clean_peak", 0.0),
+                                          ("confirmations", -1), ("jitter_position", -0.001),
+                                          ("jitter_angle_deg", float("nan"))])
 def test_a_wrong_oracle_config_value_is_refused_by_name(field, value):
     from policies.oracle import OracleConfig
 
