@@ -504,6 +504,7 @@ class OraclePolicy(Policy):
         self.last_push_rehearsals: list[str] = []  # the outcome of each push rehearsed at the last dead end
         # of each success of the last decision that was rehearsed again on jittered twins: how many held there
         self.last_confirmations: list[int] = []
+        self.last_fragile = False  # the last decision's pick held as synced but not on every jittered twin
         self._jitter_rng = np.random.default_rng(0)  # the twins' pose jitter; reseeded by reset(seed)
         # the last proposed pick: its point, its normal and its parcel's (asset index, COM), the failure's tag
         self._aimed: tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]] | None = None
@@ -541,10 +542,11 @@ class OraclePolicy(Policy):
         first push after which one of those rehearsals holds is taken. Otherwise the decision stands as made."""
         self.last_push_rehearsals = []
         info = info or {}
-        if not self.last_rehearsals or "success" in self.last_rehearsals or int(info.get("pushes_left", 1)) < 1:
+        held = "success" in self.last_rehearsals and not self.last_fragile
+        if not self.last_rehearsals or held or int(info.get("pushes_left", 1)) < 1:
             return None
-        decision = (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_scores, self.last_ratios,
-                    self.last_object_ids)
+        decision = (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
+                    self.last_ratios, self.last_object_ids)
         suction, library = self._context(info)
         truth = ground_truth(obs, library)
         lo, hi = bin_from_vector(obs["bin"]).workspace(margin=EnvConfig().action_margin)  # the env's action box
@@ -560,11 +562,11 @@ class OraclePolicy(Policy):
                 self.predict(after, info, top_k=1)
             except ValueError:
                 continue
-            if "success" in self.last_rehearsals:
+            if "success" in self.last_rehearsals and not self.last_fragile:
                 self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
                 return np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
-        (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_scores, self.last_ratios,
-         self.last_object_ids) = decision
+        (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
+         self.last_ratios, self.last_object_ids) = decision
         return None
 
     def _context(self, info: Mapping[str, Any] | None) -> tuple[SuctionConfig, AssetLibrary]:
@@ -582,6 +584,7 @@ class OraclePolicy(Policy):
         self._note_outcome(info or {})
         self.last_rehearsals = []  # filled by _rehearsed_first; empty where this decision raises before it
         self.last_confirmations = []
+        self.last_fragile = False  # set by _rehearsed_first
         if all(key in obs for key in LABEL_KEYS):
             return best_labelled(obs, top_k)
         truth = ground_truth(obs, library)
@@ -777,6 +780,7 @@ class OraclePolicy(Policy):
                     break
             if len(self.last_rehearsals) == c.rehearsals:
                 break
+        self.last_fragile = chosen is not None and best[0] < c.confirmations
         return order if chosen is None else np.concatenate([[chosen], order[order != chosen]])
 
     @staticmethod

@@ -328,19 +328,21 @@ def test_with_confirmations_the_oracle_takes_the_success_that_held_on_most_jitte
 
         monkeypatch.setattr(policy.twin, "rehearse", rehearse)
         monkeypatch.setattr(policy.twin, "refusal", lambda point, normal: None)
-        return policy._rehearsed_first(order, points, normals, owner).tolist(), asked, policy.last_confirmations
+        ranked = policy._rehearsed_first(order, points, normals, owner).tolist()
+        return ranked, asked, policy.last_confirmations, policy.last_fragile
 
     # a clean first success: no jittered rehearsal
-    assert rank({0: ("success", 0.4)}, {}) == ([0, 1, 2, 3], [(0, False)], [])
+    assert rank({0: ("success", 0.4)}, {}) == ([0, 1, 2, 3], [(0, False)], [], False)
     # 1 holds as synced but on neither jittered twin; 2 holds on both, cleanly: 2 goes first and the search ends
-    ranked, asked, held = rank({1: ("success", 0.4), 2: ("success", 0.6)},
-                               {1: ["dropped", "dropped"], 2: ["success", "success"]})
-    assert ranked[0] == 2 and held == [0, 2] and (3, False) not in asked
+    ranked, asked, held, fragile = rank({1: ("success", 0.4), 2: ("success", 0.6)},
+                                        {1: ["dropped", "dropped"], 2: ["success", "success"]})
+    assert ranked[0] == 2 and held == [0, 2] and not fragile and (3, False) not in asked
     assert asked == [(0, False), (1, False), (1, True), (1, True), (2, False), (2, True), (2, True)]
-    # a marginal success held on one jittered twin beats a cleaner one held on none
-    ranked, _, held = rank({1: ("success", 1.5), 3: ("success", 0.4)},
-                           {1: ["success", "dropped"], 3: ["dropped", "dropped"]})
-    assert ranked[0] == 1 and held == [1, 0]
+    # a marginal success held on one jittered twin beats a cleaner one held on none; held on fewer than all, it is
+    # fragile (the oracle then looks for a parting push first: tests/test_parting.py)
+    ranked, _, held, fragile = rank({1: ("success", 1.5), 3: ("success", 0.4)},
+                                    {1: ["success", "dropped"], 3: ["dropped", "dropped"]})
+    assert ranked[0] == 1 and held == [1, 0] and fragile
 
 
 def carton_and_tray(carton: trimesh.Trimesh, rim_height: float):

@@ -84,8 +84,8 @@ def test_the_twins_push_leaves_the_pile_the_envs_push_leaves(cell):
 
 def test_the_oracle_pushes_only_where_no_pick_holds():
     """On a pile where a pick holds the oracle picks (the seventh number >= 0) and rehearses no push; with its
-    rehearsals all failed (as at a dead end), it rehearses pushes on the twin and acts on one only if a pick holds
-    after it."""
+    rehearsals all failed (as at a dead end), or its pick fragile (held as synced, not on every jittered twin), it
+    rehearses pushes on the twin and acts on one only if a pick holds after it."""
     env = ParcelPickEnv(scene_factory=PILE, action_mode="pose_push", **SMALL)
     oracle = OraclePolicy(parting_pushes=True)
     try:
@@ -98,6 +98,10 @@ def test_the_oracle_pushes_only_where_no_pick_holds():
         assert oracle.last_push_rehearsals  # pushes were rehearsed
         assert pushed is not None and pushed.shape == (7,) and pushed[6] < 0
         assert "success" in oracle.last_rehearsals  # a pick held on the pile the push left
+        oracle.last_rehearsals, oracle.last_fragile = ["success"], True  # held as synced, not on jittered twins
+        assert oracle._parting_push(obs, info) is not None and oracle.last_push_rehearsals  # as at a dead end
+        oracle.last_rehearsals, oracle.last_fragile = ["success"], False
+        assert oracle._parting_push(obs, info) is None and oracle.last_push_rehearsals == []
         oracle.last_rehearsals = ["dropped"]
         assert oracle._parting_push(obs, {**info, "pushes_left": 0}) is None  # none left: the pick stands
         assert oracle.last_push_rehearsals == []
