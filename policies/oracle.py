@@ -475,11 +475,15 @@ class OraclePolicy(Policy):
     privileged = True
 
     def __init__(self, config: OracleConfig | None = None, suction: SuctionConfig | None = None,
-                 asset_seed: int | None = None, parting_pushes: bool = True) -> None:
+                 asset_seed: int | None = None, parting_pushes: bool = True, confirmations: int | None = None) -> None:
+        """``confirmations``, where given, replaces ``config``'s (``--policy-arg confirmations=2``: each success
+        that is not clean at once is rehearsed again on two jittered twins; ``OracleConfig.confirmations``)."""
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
         if not isinstance(parting_pushes, bool):
             raise ValueError(f"parting_pushes must be true or false, got {parting_pushes!r}")
+        if confirmations is not None and (isinstance(confirmations, bool) or not isinstance(confirmations, int)):
+            raise ValueError(f"confirmations must be a whole number >= 0, got {confirmations!r}")
         # with parting pushes the oracle acts in the env's action_mode="pose_push" (eval/clearance.py makes it so;
         # an env made by hand must be too: Policy.action_mode)
         self.parting_pushes = parting_pushes
@@ -488,6 +492,8 @@ class OraclePolicy(Policy):
             raise ValueError(f"suction must be a SuctionConfig, got {type(suction).__name__}")
         defaults = EnvConfig()
         self.config = config or OracleConfig()
+        if confirmations is not None:
+            self.config = dataclasses.replace(self.config, confirmations=confirmations)
         # Used only when info does not carry the env's own cup and library seed (the env always does).
         self.suction = suction or defaults.suction
         self.asset_seed = defaults.asset_seed if asset_seed is None else int(asset_seed)

@@ -331,6 +331,11 @@ def test_with_confirmations_the_oracle_takes_the_success_that_held_on_most_jitte
         ranked = policy._rehearsed_first(order, points, normals, owner).tolist()
         return ranked, asked, policy.last_confirmations, policy.last_fragile
 
+    # the policy keyword (--policy-arg confirmations=2) sets the config's; a wrong value is refused by name
+    assert OraclePolicy(confirmations=2).config.confirmations == 2 and OraclePolicy().config.confirmations == 0
+    for wrong in (-1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="confirmations"):
+            OraclePolicy(confirmations=wrong)
     # a clean first success: no jittered rehearsal
     assert rank({0: ("success", 0.4)}, {}) == ([0, 1, 2, 3], [(0, False)], [], False)
     # 1 holds as synced but on neither jittered twin; 2 holds on both, cleanly: 2 goes first and the search ends
