@@ -55,7 +55,8 @@ How it picks, per parcel, on the true meshes:
    clean). A perfect policy knows the physics too: what it still fails is where the cell's physics does not
    repeat itself from the same poses (the twin's contacts start fresh), or where nothing it rehearsed holds.
 6. Parting (by default, the env in ``action_mode="pose_push"``; ``parting_pushes=False`` gives the pick-only
-   oracle, in ``pose``): where nothing it rehearsed holds, up to ``push_trials`` pushes (``policies/parting.py``)
+   oracle, in ``pose``): where nothing it rehearsed holds (or, with ``confirmations``, what held as synced did not
+   hold on every twin with the pile's poses jittered), up to ``push_trials`` pushes (``policies/parting.py``)
    are rehearsed on the twin, and the first after which a pick holds on the pile the twin is left with is made
    instead of the pick (``act``, ``_parting_push``). A perfect picker in a real cell parts a pile it cannot pick
    from; without it the 30-parcel heap ends in dead ends no pick can open (results/ORACLE.md, 'A parting move').
@@ -157,7 +158,9 @@ class OracleConfig:
     # a success that is not clean, or that follows a failed rehearsal of the same decision, is rehearsed again on
     # this many twins with every parcel's pose jittered (``CellTwin.rehearse``, ``PoseJitter``: ``jitter_position``
     # m and ``jitter_angle_deg`` standard deviations); the success held on the most of them, then the least loaded,
-    # is taken, and one held on all of them cleanly ends the search (0: none, every success taken as rehearsed)
+    # is taken, and one held on all of them cleanly ends the search (0: none, every success taken as rehearsed). A
+    # pick held on fewer than all is fragile: with parting pushes the oracle looks for a push first, as at a dead end.
+    # Measured on the heap, not the default (results/ORACLE.md, 'Rehearsals confirmed on jittered twins')
     confirmations: int = 0
     jitter_position: float = 0.0005
     jitter_angle_deg: float = 0.3
@@ -542,10 +545,11 @@ class OraclePolicy(Policy):
         return np.append(pick, 1.0).astype(np.float32) if pushed is None else pushed
 
     def _parting_push(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None) -> np.ndarray | None:
-        """A ``pose_push`` push action, or None. Only where the last decision rehearsed picks and none held: then
-        up to ``push_trials`` pushes (``policies/parting.py``) are rehearsed on the twin, and after each that
-        runs and keeps every parcel in the tote, the oracle decides again on the pile the twin was left with; the
-        first push after which one of those rehearsals holds is taken. Otherwise the decision stands as made."""
+        """A ``pose_push`` push action, or None. Only where the last decision rehearsed picks and none held (or,
+        with ``confirmations``, its pick is fragile): then up to ``push_trials`` pushes (``policies/parting.py``)
+        are rehearsed on the twin, and after each that runs and keeps every parcel in the tote, the oracle decides
+        again on the pile the twin was left with; the first push after which one of those rehearsals holds (and is
+        not fragile) is taken. Otherwise the decision stands as made."""
         self.last_push_rehearsals = []
         info = info or {}
         held = "success" in self.last_rehearsals and not self.last_fragile
