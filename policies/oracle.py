@@ -155,7 +155,7 @@ class OracleConfig:
     # on the twin, and the first after which one of its picks holds there is taken instead of the pick
     push_trials: int = 16
     clean_peak: float = 1.0  # a rehearsed success whose ring ratios never passed this holds cleanly: taken at once
-    # a success that is not clean, or that follows a failed rehearsal of the same decision, is rehearsed again on
+    # a success other than a clean first one (the decision's first rehearsal, no ring ratio above 1) is rehearsed on
     # this many twins with every parcel's pose jittered (``CellTwin.rehearse``, ``PoseJitter``: ``jitter_position``
     # m and ``jitter_angle_deg`` standard deviations); the success held on the most of them, then the least loaded,
     # is taken, and one held on all of them cleanly ends the search (0: none, every success taken as rehearsed). A
@@ -480,7 +480,7 @@ class OraclePolicy(Policy):
     def __init__(self, config: OracleConfig | None = None, suction: SuctionConfig | None = None,
                  asset_seed: int | None = None, parting_pushes: bool = True, confirmations: int | None = None) -> None:
         """``confirmations``, where given, replaces ``config``'s (``--policy-arg confirmations=2``: each success
-        that is not clean at once is rehearsed again on two jittered twins; ``OracleConfig.confirmations``)."""
+        but a clean first one is rehearsed again on two jittered twins; ``OracleConfig.confirmations``)."""
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
         if not isinstance(parting_pushes, bool):
