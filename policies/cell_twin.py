@@ -17,7 +17,6 @@ a custom scene's fixtures, which the ``state_dict`` does not carry.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
@@ -34,7 +33,7 @@ from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class PoseJitter:
     """A small random error on every parcel's pose, drawn from ``rng``: a position error of ``position`` (m,
     standard deviation per axis) and a turn about a random axis of ``angle_deg`` (standard deviation per axis of

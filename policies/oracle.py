@@ -552,8 +552,7 @@ class OraclePolicy(Policy):
         not fragile) is taken. Otherwise the decision stands as made."""
         self.last_push_rehearsals = []
         info = info or {}
-        held = "success" in self.last_rehearsals and not self.last_fragile
-        if not self.last_rehearsals or held or int(info.get("pushes_left", 1)) < 1:
+        if not self.last_rehearsals or self._decision_holds() or int(info.get("pushes_left", 1)) < 1:
             return None
         decision = (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
                     self.last_ratios, self.last_object_ids)
@@ -572,12 +571,16 @@ class OraclePolicy(Policy):
                 self.predict(after, info, top_k=1)
             except ValueError:
                 continue
-            if "success" in self.last_rehearsals and not self.last_fragile:
+            if self._decision_holds():
                 self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
                 return np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
         (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
          self.last_ratios, self.last_object_ids) = decision
         return None
+
+    def _decision_holds(self) -> bool:
+        """Whether the last decision's pick held in a rehearsal, and (with ``confirmations``) is not fragile."""
+        return "success" in self.last_rehearsals and not self.last_fragile
 
     def _context(self, info: Mapping[str, Any] | None) -> tuple[SuctionConfig, AssetLibrary]:
         info = info or {}
