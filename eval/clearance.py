@@ -147,6 +147,9 @@ class EpisodeResult:
     # parting pushes (action_mode="pose_push", the oracle's parting_pushes): no attempts, so kept apart; each
     # record is attempt_record's with ``before``, the number of attempts made before it
     push_log: list[dict[str, Any]] = field(default_factory=list)
+    # parcels that left the bin during the episode (the env's ``parcels_lost``); the step that lost them carries
+    # ``lost`` in its attempt or push record
+    parcels_lost: int = 0
 
 
 def episode_tasks(config: ClearanceConfig) -> list[EpisodeTask]:
@@ -251,15 +254,17 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
             rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin
             confirmations = getattr(policy, "last_confirmations", None)  # ... and on its jittered twins
             pushes_rehearsed = getattr(policy, "last_push_rehearsals", None)
+            lost_before = int(info["parcels_lost"])
             obs, _, terminated, truncated, info = env.step(action)
+            lost = {"lost": n} if (n := int(info["parcels_lost"]) - lost_before) else {}
             if is_push_action(action):
-                push_log.append({**attempt_record(info), "before": len(attempt_log),
+                push_log.append({**attempt_record(info), "before": len(attempt_log), **lost,
                                  **({"push_rehearsals": list(pushes_rehearsed)} if pushes_rehearsed else {})})
                 if terminated or truncated:
                     break
                 continue
             outcomes[info["outcome"]] += 1
-            record = attempt_record(info)
+            record = {**attempt_record(info), **lost}
             if audit is not None:
                 record["audit"] = audit
             if rehearsals:
@@ -278,7 +283,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         parcels_placed=int(info["parcels_placed"]), parcels_cleared=int(info["parcels_cleared"]),
         reason=str(info.get("reason", "truncated")), outcomes=dict(outcomes),
         replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start, attempt_log=attempt_log,
-        push_log=push_log)
+        push_log=push_log, parcels_lost=int(info["parcels_lost"]))
 
 
 def _audit(env, action: np.ndarray) -> dict[str, Any] | None:
@@ -310,6 +315,15 @@ def _log_policy_extras(env, policy) -> None:
 RATES: dict[str, tuple[str, str]] = {"R_grasp": ("successes", "attempts"), "R_object": ("cleared", "placed")}
 
 
+def lost_by_step(result: EpisodeResult) -> Counter[str]:
+    """Parcels ``result`` lost from the bin, by the step that lost them: its failure kind, 'success' or 'push'."""
+    counts: Counter[str] = Counter()
+    for record in result.attempt_log:
+        counts[failure_kind(record) or "success"] += record.get("lost", 0)
+    counts["push"] += sum(record.get("lost", 0) for record in result.push_log)
+    return +counts  # without the zero counts
+
+
 def _rate_intervals(episodes: list[EpisodeResult], strata: list[str] | None = None) -> dict[str, dict[str, Any]]:
     """Bootstrap 95% intervals of R_grasp and R_object (pooled ratios) over the given episodes."""
     fields = {"successes": "successes", "attempts": "attempts", "cleared": "parcels_cleared",
@@ -322,31 +336,38 @@ def _rate_intervals(episodes: list[EpisodeResult], strata: list[str] | None = No
 def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
     """Pool episodes per cell (the paper's Table V) and over everything, each rate with its bootstrap 95%
     interval over episodes (``intervals``; overall, resampled within each cell so every cell keeps its size),
-    and the failed attempts counted by kind (``failures``: 'outcome: phase') and in detail (``causes``)."""
+    and the failed attempts counted by kind (``failures``: 'outcome: phase') and in detail (``causes``); parcels
+    that left the bin (``lost``), counted by the step that lost them (``lost_by``: its failure kind, 'success' or
+    'push'; steps logged before these counts existed are unattributed)."""
     cells: dict[str, dict[str, Any]] = {}
     members: dict[str, list[EpisodeResult]] = {}
     for r in results:
         key = f"{r.objects}/{r.layout}"
         members.setdefault(key, []).append(r)
         cell = cells.setdefault(key, {"objects": r.objects, "layout": r.layout, "attempts": 0, "successes": 0,
-                                      "placed": 0, "cleared": 0, "episodes": 0, "pushes": 0, "outcomes": Counter(),
-                                      "failures": Counter(), "causes": Counter()})
+                                      "placed": 0, "cleared": 0, "episodes": 0, "pushes": 0, "lost": 0,
+                                      "outcomes": Counter(), "failures": Counter(), "causes": Counter(),
+                                      "lost_by": Counter()})
         cell["attempts"] += r.attempts
         cell["successes"] += r.successes
         cell["placed"] += r.parcels_placed
         cell["cleared"] += r.parcels_cleared
         cell["episodes"] += 1
         cell["pushes"] += len(r.push_log)
+        cell["lost"] += r.parcels_lost
+        cell["lost_by"].update(lost_by_step(r))
         cell["outcomes"].update(r.outcomes)
         cell["failures"].update(k for k in map(failure_kind, r.attempt_log) if k)
         cell["causes"].update(k for k in map(failure_detail, r.attempt_log) if k)
-    total: dict[str, Any] = {"attempts": 0, "successes": 0, "placed": 0, "cleared": 0, "episodes": 0, "pushes": 0}
-    counters: dict[str, Counter[str]] = {"outcomes": Counter(), "failures": Counter(), "causes": Counter()}
+    total: dict[str, Any] = {"attempts": 0, "successes": 0, "placed": 0, "cleared": 0, "episodes": 0, "pushes": 0,
+                             "lost": 0}
+    counters: dict[str, Counter[str]] = {"outcomes": Counter(), "failures": Counter(), "causes": Counter(),
+                                         "lost_by": Counter()}
     for key, cell in cells.items():
         cell["R_grasp"] = 100.0 * cell["successes"] / max(cell["attempts"], 1)
         cell["R_object"] = 100.0 * cell["cleared"] / max(cell["placed"], 1)
         cell["intervals"] = _rate_intervals(members[key])
-        for k in ("attempts", "successes", "placed", "cleared", "episodes", "pushes"):
+        for k in ("attempts", "successes", "placed", "cleared", "episodes", "pushes", "lost"):
             total[k] += cell[k]
         for k, counter in counters.items():
             counter.update(cell[k])
@@ -403,6 +424,10 @@ def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) 
               f"{o['by_cover'].get('covered', {}).get('while_free_left', 0)}")
     if o.get("pushes"):
         lines.append(f"Parting pushes (no attempts): {o['pushes']}")
+    if o.get("lost"):
+        steps = ", ".join(f"{k} {n}" for k, n in sorted(o["lost_by"].items(), key=lambda kv: -kv[1]))
+        lines.append(f"Parcels lost from the bin (count against R_object): {o['lost']}, by the step that lost them: "
+                     f"{steps or 'not logged'}")
     if (r := o.get("rehearsals")):
         lines.append(f"Rehearsed on the cell's twin: {r['held']} picks held there, {r['held_failed']} of them failed "
                      f"here; {r['unheld']} with none held there (dead ends), {r['unheld_succeeded']} of them "

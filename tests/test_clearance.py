@@ -113,6 +113,46 @@ def test_parting_pushes_are_counted_apart_from_attempts():
     assert "Parting pushes" not in format_table(summarise([_result("mixed", "stacked", 1, 1, 1, 1, {"success": 1})]))
 
 
+def test_parcels_lost_are_counted_by_the_step_that_lost_them():
+    dropped = {"outcome": "dropped", "cause": None, "phase": "lift", "link": None, "condition": None, "body": None}
+    success = {"outcome": "success", "cause": None, "phase": None, "link": None, "condition": None, "body": None}
+    lossy = _result("mixed", "stacked", 3, 2, 5, 2, {"success": 2, "dropped": 1})
+    lossy.attempt_log = [success, {**dropped, "lost": 2}, {**success, "lost": 1}]
+    lossy.push_log = [{**success, "outcome": "pushed", "before": 1, "lost": 1}]
+    lossy.parcels_lost = 4
+    s = summarise([lossy, _result("mixed", "stacked", 1, 1, 1, 1, {"success": 1}, episode=1)])
+    cell, o = s["cells"]["mixed/stacked"], s["overall"]
+    assert cell["lost"] == o["lost"] == 4
+    assert cell["lost_by"] == o["lost_by"] == {"dropped: lift": 2, "success": 1, "push": 1}
+    assert ("Parcels lost from the bin (count against R_object): 4, by the step that lost them: dropped: lift 2, "
+            "success 1, push 1") in format_table(s)
+    assert "Parcels lost" not in format_table(summarise([_result("mixed", "stacked", 1, 1, 1, 1, {"success": 1})]))
+
+
+def test_a_parcel_knocked_out_of_the_bin_is_charged_to_the_attempt_that_lost_it(monkeypatch):
+    """The env's own loss path (a parcel whose centre of mass leaves the bin is removed and counted): the parcel
+    the first attempt leaves standing is thrown out after it, and the log charges that attempt alone."""
+    from parcelpick_env.envs.grasp import PickExecutor
+
+    real, calls = PickExecutor.attempt, []
+
+    def attempt(self, scene, point, normal):
+        result = real(self, scene, point, normal)
+        if not calls:
+            left = next(ps for ps in scene.parcels if self.sim.has_body(ps.body_id))
+            self.sim.set_body_pose(left.body_id, [5.0, 5.0, 0.5], [0.0, 0.0, 0.0, 1.0])
+        calls.append(result.outcome)
+        return result
+
+    monkeypatch.setattr(PickExecutor, "attempt", attempt)
+    summary = evaluate_clearance(ClearanceConfig(**dict(TINY, max_attempts=3)), progress=False)
+    (ep,) = summary["episodes"]
+    assert ep["parcels_lost"] == 1 and ep["attempt_log"][0]["lost"] == 1
+    assert all("lost" not in a for a in ep["attempt_log"][1:])
+    assert summary["overall"]["lost"] == 1 and sum(summary["overall"]["lost_by"].values()) == 1
+    assert ep["parcels_cleared"] <= ep["parcels_placed"] - 1
+
+
 def test_summarise_of_episode_without_attempts_is_not_a_division_by_zero():
     s = summarise([_result("mixed", "stacked", 0, 0, 0, 0, {})])
     assert s["cells"]["mixed/stacked"]["R_grasp"] == 0.0 and s["overall"]["R_object"] == 0.0
