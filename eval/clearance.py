@@ -338,7 +338,7 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
     interval over episodes (``intervals``; overall, resampled within each cell so every cell keeps its size),
     and the failed attempts counted by kind (``failures``: 'outcome: phase') and in detail (``causes``); parcels
     that left the bin (``lost``), counted by the step that lost them (``lost_by``: its failure kind, 'success' or
-    'push'; steps logged before these counts existed are unattributed)."""
+    'push'; runs logged before these counts existed read 0)."""
     cells: dict[str, dict[str, Any]] = {}
     members: dict[str, list[EpisodeResult]] = {}
     for r in results:
