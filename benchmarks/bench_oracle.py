@@ -6,7 +6,9 @@ Each pile is a stacked mixed ``ParcelPick-v0`` pile (``obs_mode="state_dict"``) 
 the oracle decides on it ``--repeats`` times (reset between, so nothing is remembered), once more with the twin
 answering at once and nothing rehearsed (the rest of the decision's cost), and the twin's parts are timed on their
 own: a sync to a pile it does not hold yet, and the plan (``CellTwin.refusal``), lift test (``CellTwin.lifts``,
-30 cm up) and rehearsal (``CellTwin.rehearse``, the whole attempt with dynamics) of the pick the oracle chose.
+30 cm up) and rehearsal (``CellTwin.rehearse``, the whole attempt with dynamics) of the pick the oracle chose,
+and the list of parting pushes it would try at a dead end (``policies/parting.py``'s ``push_candidates``, up to
+``OracleConfig.push_trials``, in the env's action box; the push rehearsals themselves are not timed here).
 Medians over every pile and repeat; a decision rehearses more than once only where its first pick fails there.
 """
 
@@ -26,14 +28,23 @@ import gymnasium as gym  # noqa: E402
 import parcelpick_env  # noqa: E402,F401  (registers ParcelPick-v0)
 from parcelpick_env.assets.library import AssetLibrary  # noqa: E402
 from parcelpick_env.camera.config import CameraConfig  # noqa: E402
+from parcelpick_env.envs.config import EnvConfig  # noqa: E402
+from parcelpick_env.envs.observation import bin_from_vector  # noqa: E402
 from policies.cell_twin import CellTwin  # noqa: E402
-from policies.oracle import OracleConfig, OraclePolicy  # noqa: E402
+from policies.oracle import OracleConfig, OraclePolicy, ground_truth, pinned_parcels  # noqa: E402
+from policies.parting import push_candidates  # noqa: E402
 
 
 def timed(fn) -> tuple[float, object]:
     start = time.perf_counter()
     out = fn()
     return (time.perf_counter() - start) * 1e3, out
+
+
+def list_pushes(obs, library, cup_radius: float, limit: int, box) -> list:
+    """The oracle's parting pushes on ``obs``'s pile, from its true scene as the oracle reads it at a dead end."""
+    truth = ground_truth(obs, library)
+    return push_candidates(truth, pinned_parcels(truth), cup_radius, limit, box)
 
 
 def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
@@ -45,11 +56,13 @@ def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
     untwinned.twin.refusal = lambda point, normal: None  # type: ignore[method-assign]
     untwinned.twin.lifts = lambda point, normal, top: True  # type: ignore[method-assign]
     rows: dict[str, list[float]] = {"decision": [], "untwinned": [], "sync": [], "plan": [], "lift": [],
-                                    "rehearsal": [], "rehearsals": []}
+                                    "rehearsal": [], "rehearsals": [], "push_list": [], "pushes": []}
     try:
         for pile in range(piles):
             obs, info = env.reset(seed=pile)
             library = AssetLibrary.default(int(info["asset_seed"]))
+            box = bin_from_vector(obs["bin"]).workspace(margin=EnvConfig().action_margin)  # the env's action box
+            cup_radius = info.get("suction", policy.suction).cup_radius
             for _ in range(repeats):
                 policy.reset()
                 ms, picks = timed(lambda: policy.predict(obs, info))
@@ -63,6 +76,9 @@ def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
                 rows["plan"].append(timed(lambda: twin.refusal(point, normal))[0])
                 rows["lift"].append(timed(lambda: twin.lifts(point, normal, float(point[2]) + 0.3))[0])
                 rows["rehearsal"].append(timed(lambda: twin.rehearse(point, normal))[0])
+                ms, pushes = timed(lambda: list_pushes(obs, library, cup_radius, policy.config.push_trials, box))
+                rows["push_list"].append(ms)
+                rows["pushes"].append(len(pushes))
     finally:
         twin.close()
         env.close()
@@ -79,12 +95,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--parcels, --piles and --repeats must be >= 1")
     print(f"stacked mixed piles, {args.piles} piles x {args.repeats} decisions each; medians")
     print("| parcels | oracle decision | rehearsals in it | the same, twin answering at once, no rehearsal | twin sync "
-          "(new pile) | cell's plan of the pick | lift test of the pick (30 cm) | rehearsal of the pick |")
-    print("|---|---|---|---|---|---|---|---|")
+          "(new pile) | cell's plan of the pick | lift test of the pick (30 cm) | rehearsal of the pick | parting pushes "
+          "listed (truth, pinning, list) | pushes listed |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for parcels in args.parcels:
         r = bench(parcels, args.piles, args.repeats)
         print(f"| {parcels} | {r['decision']:.0f} ms | {r['rehearsals']:.0f} | {r['untwinned']:.0f} ms | "
-              f"{r['sync']:.1f} ms | {r['plan']:.0f} ms | {r['lift']:.0f} ms | {r['rehearsal']:.0f} ms |")
+              f"{r['sync']:.1f} ms | {r['plan']:.0f} ms | {r['lift']:.0f} ms | {r['rehearsal']:.0f} ms | "
+              f"{r['push_list']:.0f} ms | {r['pushes']:.0f} |")
     return 0
 
 
