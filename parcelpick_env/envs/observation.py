@@ -32,7 +32,9 @@
   Mesh of row k: ``library_assets(AssetLibrary.default(asset_seed))[parcel_asset_index[k]].mesh``
   (``asset_from_index``), posed by ``parcel_position``/``parcel_quaternion``; ``asset_seed`` is
   ``EnvConfig.asset_seed``, also given as ``info['asset_seed']`` in this mode, with the env's cup as
-  ``info['suction']`` (``EnvConfig.suction``: its radius, material constant and seal model).
+  ``info['suction']`` (``EnvConfig.suction``: its radius, material constant and seal model), and the whole
+  ``EnvConfig`` as ``info['env_config']`` (with ``info['scene_seed']``, the oracle's shadow of the cell is
+  built from it: ``policies/shadow_cell.py``).
 
 Every mode captures the camera and samples the cloud, so ``np_random`` advances identically and the same
 seed gives the same piles and the same episode in every mode.
@@ -241,7 +243,9 @@ class ObservationBuilder:
 
     def info(self) -> dict[str, Any]:
         """Entries every ``info`` carries: whether the observation is privileged, and in that case what
-        a privileged reader needs to interpret it (the asset library's seed and the env's physical cup)."""
+        a privileged reader needs to interpret it (the asset library's seed and the env's physical cup) and
+        to model the cell (the env's whole ``EnvConfig``: the oracle's shadow cell is built from it)."""
         if not self.privileged:
             return {"privileged": False}
-        return {"privileged": True, "asset_seed": int(self.config.asset_seed), "suction": self.config.suction}
+        return {"privileged": True, "asset_seed": int(self.config.asset_seed), "suction": self.config.suction,
+                "env_config": self.config}

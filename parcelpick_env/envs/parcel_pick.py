@@ -31,6 +31,8 @@ One step is one physical pick attempt (see ``grasp.py``); reward 1 when a parcel
 
 Known-answer scenes: ``EnvConfig.scene_factory`` (or ``reset(options={'scene_factory': f})``) is a
 callable ``(sim, seed) -> Scene`` used instead of ``build_pile``, e.g. ``custom_scene.BoxScene``.
+``reset(options={'scene_seed': s})`` builds the pile of ``info['scene_seed'] == s`` (a logged episode's, or a
+replay's file name's) instead of one drawn from the reset seed.
 Replays: with ``record_dir`` set, each episode is written to ``record_dir/episode_<k>_seed<s>.rrd``
 (``self.replay_path``; ``self.recorder`` is the live ``EpisodeRecorder``).
 
@@ -286,7 +288,13 @@ class ParcelPickEnv(gym.Env):
             self.recorder.close()
             self.recorder = None
         factory = options.get("scene_factory", self.config.scene_factory)
-        scene_seed = int(self.np_random.integers(0, 2**31 - 1))
+        scene_seed = int(self.np_random.integers(0, 2**31 - 1))  # drawn in any case: np_random advances alike
+        if "scene_seed" in options:
+            scene_seed = options["scene_seed"]
+            if isinstance(scene_seed, (bool, np.bool_)) or not isinstance(scene_seed, (int, np.integer)) \
+                    or not 0 <= scene_seed < 2**31 - 1:
+                raise ValueError(f"reset option scene_seed must be an int in [0, 2**31 - 1), got {scene_seed!r}")
+            scene_seed = int(scene_seed)
         self.scene = self._build_scene(scene_seed, factory)
         self.arm = Gen3Arm(self.sim.client, self.config.arm)
         self.executor = PickExecutor(self.sim, self.arm, self.config.grasp, self.config.suction)
@@ -366,7 +374,8 @@ class ParcelPickEnv(gym.Env):
 
     def privileged_state(self) -> dict[str, Any]:
         """The scene's true state as ``obs_mode="state_dict"`` gives it (without the cloud), whatever this env's
-        obs_mode: for evaluators that judge a pick (``eval/pick_audit.py``), never for a policy's input."""
+        obs_mode: for evaluators that judge a pick (``eval/pick_audit.py``) and for the oracle's shadow of the cell (its
+        own env, ``policies/shadow_cell.py``), never for a deployable policy's input."""
         return self._observation.state(_after_reset(self.scene, "scene"), self.sim)
 
     def render(self):
