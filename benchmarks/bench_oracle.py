@@ -8,7 +8,10 @@ answering at once and nothing rehearsed (the rest of the decision's cost), and t
 own: a sync to a pile it does not hold yet, and the plan (``CellTwin.refusal``), lift test (``CellTwin.lifts``,
 30 cm up) and rehearsal (``CellTwin.rehearse``, the whole attempt with dynamics) of the pick the oracle chose,
 and the list of parting pushes it would try at a dead end (``policies/parting.py``'s ``push_candidates``, up to
-``OracleConfig.push_trials``, in the env's action box; the push rehearsals themselves are not timed here).
+``OracleConfig.push_trials``, in the env's action box; the push rehearsals themselves are not timed here). The shadow
+of the cell (``policies/shadow_cell.py``, what ``act`` rehearses on by default) is timed too: its start on an
+episode's pile (an env reset at a 64 x 48 camera) and its rehearsal of the same pick (a forked child runs the
+attempt); following a step of the env costs it one env step (benchmarks/bench_env.py).
 Medians over every pile and repeat; a decision rehearses more than once only where its first pick fails there.
 """
 
@@ -33,6 +36,7 @@ from parcelpick_env.envs.observation import bin_from_vector  # noqa: E402
 from policies.cell_twin import CellTwin  # noqa: E402
 from policies.oracle import OracleConfig, OraclePolicy, ground_truth, pinned_parcels  # noqa: E402
 from policies.parting import push_candidates  # noqa: E402
+from policies.shadow_cell import ShadowCell  # noqa: E402
 
 
 def timed(fn) -> tuple[float, object]:
@@ -50,13 +54,14 @@ def list_pushes(obs, library, cup_radius: float, limit: int, box) -> list:
 def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
     env = gym.make("ParcelPick-v0", object_set="mixed", layout="stacked", num_parcels=parcels,
                    obs_mode="state_dict", camera=CameraConfig(width=160, height=120), num_points=256)
-    policy, twin = OraclePolicy(), CellTwin()
+    policy, twin, shadow = OraclePolicy(), CellTwin(), ShadowCell()
     # the same oracle with the twin's answers given at once and no rehearsal: what the rest of a decision costs
     untwinned = OraclePolicy(OracleConfig(rehearsals=0))
     untwinned.twin.refusal = lambda point, normal: None  # type: ignore[method-assign]
     untwinned.twin.lifts = lambda point, normal, top: True  # type: ignore[method-assign]
     rows: dict[str, list[float]] = {"decision": [], "untwinned": [], "sync": [], "plan": [], "lift": [],
-                                    "rehearsal": [], "rehearsals": [], "push_list": [], "pushes": []}
+                                    "rehearsal": [], "rehearsals": [], "push_list": [], "pushes": [],
+                                    "shadow_start": [], "shadow_rehearsal": []}
     try:
         for pile in range(piles):
             obs, info = env.reset(seed=pile)
@@ -76,11 +81,18 @@ def bench(parcels: int, piles: int, repeats: int) -> dict[str, float]:
                 rows["plan"].append(timed(lambda: twin.refusal(point, normal))[0])
                 rows["lift"].append(timed(lambda: twin.lifts(point, normal, float(point[2]) + 0.3))[0])
                 rows["rehearsal"].append(timed(lambda: twin.rehearse(point, normal))[0])
+                shadow.new_episode()
+                ms, live = timed(lambda: shadow.track(obs, info))
+                if not live:
+                    raise RuntimeError(f"the shadow does not follow the env's pile: {shadow.why_not}")
+                rows["shadow_start"].append(ms)
+                rows["shadow_rehearsal"].append(timed(lambda: shadow.rehearse(point, normal))[0])
                 ms, pushes = timed(lambda: list_pushes(obs, library, cup_radius, policy.config.push_trials, box))
                 rows["push_list"].append(ms)
                 rows["pushes"].append(len(pushes))
     finally:
         twin.close()
+        shadow.close()
         env.close()
     return {name: float(np.median(values)) for name, values in rows.items()}
 
@@ -96,13 +108,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"stacked mixed piles, {args.piles} piles x {args.repeats} decisions each; medians")
     print("| parcels | oracle decision | rehearsals in it | the same, twin answering at once, no rehearsal | twin sync "
           "(new pile) | cell's plan of the pick | lift test of the pick (30 cm) | rehearsal of the pick | parting pushes "
-          "listed (truth, pinning, list) | pushes listed |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "listed (truth, pinning, list) | pushes listed | shadow start (its reset) | shadow rehearsal of the pick (fork) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for parcels in args.parcels:
         r = bench(parcels, args.piles, args.repeats)
         print(f"| {parcels} | {r['decision']:.0f} ms | {r['rehearsals']:.0f} | {r['untwinned']:.0f} ms | "
               f"{r['sync']:.1f} ms | {r['plan']:.0f} ms | {r['lift']:.0f} ms | {r['rehearsal']:.0f} ms | "
-              f"{r['push_list']:.0f} ms | {r['pushes']:.0f} |")
+              f"{r['push_list']:.0f} ms | {r['pushes']:.0f} | {r['shadow_start']:.0f} ms | {r['shadow_rehearsal']:.0f} ms |")
     return 0
 
 

@@ -251,7 +251,9 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 _log_policy_extras(env.unwrapped, policy)
                 first = False
             audit = _audit(env.unwrapped, action) if cfg.audit_picks else None
-            rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin
+            rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin or shadow
+            exact = getattr(policy, "last_exact", False)  # ... on its shadow, the env's own state
+            opening = getattr(policy, "last_opening_rehearsals", None)  # failed picks looked past at a dead end
             confirmations = getattr(policy, "last_confirmations", None)  # ... and on its jittered twins
             pushes_rehearsed = getattr(policy, "last_push_rehearsals", None)
             lost_before = int(info["parcels_lost"])
@@ -269,6 +271,10 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 record["audit"] = audit
             if rehearsals:
                 record["rehearsals"] = list(rehearsals)
+                if exact:
+                    record["exact"] = True
+            if opening:
+                record["opening_rehearsals"] = list(opening)
             if confirmations:
                 record["confirmations"] = list(confirmations)
             attempt_log.append(record)

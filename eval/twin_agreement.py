@@ -84,7 +84,8 @@ def episode_verdicts(task: EpisodeTask) -> list[Verdicts]:
     from policies.oracle import OracleConfig, OraclePolicy
 
     env = gym.make("ParcelPick-v0", **episode_env_kwargs(task), obs_mode="state_dict")
-    oracle = OraclePolicy(OracleConfig(rehearsals=0), parting_pushes=False)  # the twin's verdicts on picks alone
+    # the posed twin's verdicts on picks alone (no shadow of the cell: it is the twin that is measured)
+    oracle = OraclePolicy(OracleConfig(rehearsals=0), parting_pushes=False, exact=False)
     out: list[Verdicts] = []
     try:
         obs, info = env.reset(seed=task.seed)

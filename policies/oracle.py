@@ -52,8 +52,12 @@ How it picks, per parcel, on the true meshes:
    and the neighbours' drag in the lift, which no geometric model above predicts); where it does not hold there
    cleanly (every ring ratio at most ``clean_peak``), the best candidate of each other parcel, then approaches
    spread over those offered, until one does (at most ``rehearsals``; the least loaded success if none is
-   clean). A perfect policy knows the physics too: what it still fails is where the cell's physics does not
-   repeat itself from the same poses (the twin's contacts start fresh), or where nothing it rehearsed holds.
+   clean). A perfect policy knows the physics too. On the posed twin, what it still fails is where the cell's
+   physics does not repeat itself from the same poses (the twin's contacts start fresh); so by default
+   (``exact_rehearsals``) the rehearsals of a decision on the observed pile run on the shadow of the cell instead
+   (``policies/shadow_cell.py``: the env's own code, built from ``info['env_config']``, reset to the episode's
+   pile and stepped with every action taken, checked to the bit against the observation), whose verdict is the
+   env's. Then it fails only where nothing it rehearsed holds.
 6. Parting (by default, the env in ``action_mode="pose_push"``; ``parting_pushes=False`` gives the pick-only
    oracle, in ``pose``): where nothing it rehearsed holds (or, with ``confirmations``, what held as synced did not
    hold on every twin with the pile's poses jittered), up to ``push_trials`` pushes (``policies/parting.py``)
@@ -69,6 +73,7 @@ physical scores of the returned candidates are kept in ``last_scores`` and their
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -79,7 +84,9 @@ from scipy.spatial.transform import Rotation
 
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
+from parcelpick_env.envs.grasp import PickResult
 from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
+from parcelpick_env.envs.push import is_push_action
 from parcelpick_env.farthest_points import farthest_point_indices
 from parcelpick_env.robot.arm import ArmConfig
 from parcelpick_env.robot.gen3 import JOINTS, SuctionToolSpec
@@ -94,6 +101,7 @@ from policies.base import Candidates, Policy
 from policies.cell_twin import CellTwin, PoseJitter
 from policies.failed_picks import FailedPicks
 from policies.parting import push_candidates
+from policies.shadow_cell import ShadowCell
 
 STATE_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion", "parcel_com",
                                "parcel_mass", "parcel_asset_index", "parcel_extents", "parcel_friction", "bin")
@@ -162,6 +170,14 @@ class OracleConfig:
     # pick held on fewer than all is fragile: with parting pushes the oracle looks for a push first, as at a dead end.
     # Measured on the heap, not the default (results/ORACLE.md, 'Rehearsals confirmed on jittered twins')
     confirmations: int = 0
+    # rehearse on the shadow of the cell (``policies/shadow_cell.py``: the env's own code on the env's pile, with its
+    # contact history, followed step by step) where it follows the env, and on the posed twin otherwise. The push
+    # search's look-ahead, the refusals and the jittered confirmations stay on the twin
+    exact_rehearsals: bool = True
+    # at a dead end on the shadow (no rehearsal holds, no parting push opens the pile), the failing pick made is the
+    # first of the decision's failed rehearsals after which, looked past on the shadow, a pick holds: a pick that
+    # must fail anyway is spent where its fall opens the pile (never the one that would end the episode)
+    opening_picks: bool = True
     jitter_position: float = 0.0005
     jitter_angle_deg: float = 0.3
     reach_step: float = 0.05  # m between IK checks along the lift line
@@ -478,15 +494,20 @@ class OraclePolicy(Policy):
     privileged = True
 
     def __init__(self, config: OracleConfig | None = None, suction: SuctionConfig | None = None,
-                 asset_seed: int | None = None, parting_pushes: bool = True, confirmations: int | None = None) -> None:
+                 asset_seed: int | None = None, parting_pushes: bool = True, confirmations: int | None = None,
+                 exact: bool | None = None) -> None:
         """``confirmations``, where given, replaces ``config``'s (``--policy-arg confirmations=2``: each success
-        but a clean first one is rehearsed again on two jittered twins; ``OracleConfig.confirmations``)."""
+        but a clean first one is rehearsed again on two jittered twins; ``OracleConfig.confirmations``), and so
+        does ``exact`` (``--policy-arg exact=false``: every rehearsal on the posed twin, none on the shadow of the
+        cell; ``OracleConfig.exact_rehearsals``)."""
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
         if not isinstance(parting_pushes, bool):
             raise ValueError(f"parting_pushes must be true or false, got {parting_pushes!r}")
         if confirmations is not None and (isinstance(confirmations, bool) or not isinstance(confirmations, int)):
             raise ValueError(f"confirmations must be a whole number >= 0, got {confirmations!r}")
+        if exact is not None and not isinstance(exact, bool):
+            raise ValueError(f"exact must be true or false, got {exact!r}")
         # with parting pushes the oracle acts in the env's action_mode="pose_push" (eval/clearance.py makes it so;
         # an env made by hand must be too: Policy.action_mode)
         self.parting_pushes = parting_pushes
@@ -497,6 +518,8 @@ class OraclePolicy(Policy):
         self.config = config or OracleConfig()
         if confirmations is not None:
             self.config = dataclasses.replace(self.config, confirmations=confirmations)
+        if exact is not None:
+            self.config = dataclasses.replace(self.config, exact_rehearsals=exact)
         # Used only when info does not carry the env's own cup and library seed (the env always does).
         self.suction = suction or defaults.suction
         self.asset_seed = defaults.asset_seed if asset_seed is None else int(asset_seed)
@@ -505,12 +528,19 @@ class OraclePolicy(Policy):
         self.grasp = defaults.grasp  # the cell's pick geometry: pre-grasp distance, carrying clearance
         self.reach = ArmReach(defaults.arm)
         self.twin = CellTwin(defaults)  # the cell's own plan, on a copy of the tote, arm and pile
+        self.shadow = ShadowCell()  # the env itself, followed step by step: exact rehearsals (act only)
+        self._exact = False  # this decision rehearses on the shadow (set by act, for the observed pile only)
+        self.last_exact = False  # the last decision's rehearsals ran on the shadow
         self.load_target = defaults.grasp.carry_load_target  # a sound pick hangs within the carry's load share
         self.last_scores: SuctionScores | None = None
         self.last_ratios: np.ndarray | None = None  # (K, 6) predicted ring ratios at rest of the returned picks
         self.last_object_ids: np.ndarray | None = None
         self.last_rehearsals: list[str] = []  # the outcome of each rehearsal of the last decision, in order
         self.last_push_rehearsals: list[str] = []  # the outcome of each push rehearsed at the last dead end
+        # ... and of each failed pick looked past on the shadow there, before one opened the pile (opening_picks)
+        self.last_opening_rehearsals: list[str] = []
+        self._rehearsed: list[int] = []
+        self._failed_picks: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]]]] = []
         # of each success of the last decision that was rehearsed again on jittered twins: how many held there
         self.last_confirmations: list[int] = []
         self.last_fragile = False  # the last decision's pick held as synced but not on every jittered twin
@@ -524,6 +554,7 @@ class OraclePolicy(Policy):
         self._aimed = None
         self._jitter_rng = np.random.default_rng(seed)
         self.failed.clear()
+        self.shadow.new_episode()
 
     def _note_outcome(self, info: Mapping[str, Any]) -> None:
         """A failed attempt (``info['outcome']``, which every policy sees) puts that parcel behind the others,
@@ -537,30 +568,55 @@ class OraclePolicy(Policy):
     def act(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
         """The best pick, as a ``pose`` action; with ``parting_pushes``, a ``pose_push`` action: that pick, or a
         parting push where no rehearsal of the pick decision held and a rehearsed push leaves a pile where one
-        does (``_parting_push``)."""
-        pick = self.predict(obs, info, top_k=1).best_action()
-        if not self.parting_pushes:
-            return pick
-        pushed = self._parting_push(obs, info)
-        return np.append(pick, 1.0).astype(np.float32) if pushed is None else pushed
+        does (``_parting_push``). With ``exact_rehearsals``, the shadow of the cell first takes the step the env
+        took, and the decision's rehearsals run on it where its pile is the observed one."""
+        self.last_opening_rehearsals = []
+        exact = self.config.exact_rehearsals and self.shadow.track(obs, info or {})
+        self._exact = exact
+        try:
+            pick = self.predict(obs, info, top_k=1).best_action()
+        finally:
+            self._exact = False
+        exact = exact and self.last_exact
+        move = self._parting_push(obs, info, exact) if self.parting_pushes else None
+        if move is None and exact and self.config.opening_picks:
+            pick = self._opening_pick(info or {}, pick)
+        if move is None:
+            move = np.append(pick, 1.0).astype(np.float32) if self.parting_pushes else pick
+        if self.config.exact_rehearsals:
+            self.shadow.expect(move)
+        return move
 
-    def _parting_push(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None) -> np.ndarray | None:
+    def _parting_push(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None,
+                      exact: bool = False) -> np.ndarray | None:
         """A ``pose_push`` push action, or None. Only where the last decision rehearsed picks and none held (or,
         with ``confirmations``, its pick is fragile): then up to ``push_trials`` pushes (``policies/parting.py``)
         are rehearsed on the twin, and after each that runs and keeps every parcel in the tote, the oracle decides
         again on the pile the twin was left with; the first push after which one of those rehearsals holds (and is
-        not fragile) is taken. Otherwise the decision stands as made."""
+        not fragile) is taken. Otherwise the decision stands as made. With ``exact`` (the shadow of the cell follows
+        the env), each push and the decision after it run on the shadow instead (``_look_past``), whose verdict
+        is the env's; the twin takes over if the shadow fails."""
         self.last_push_rehearsals = []
         info = info or {}
         if not self.last_rehearsals or self._decision_holds() or int(info.get("pushes_left", 1)) < 1:
             return None
         decision = (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
-                    self.last_ratios, self.last_object_ids)
+                    self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks)
         suction, library = self._context(info)
         truth = ground_truth(obs, library)
         lo, hi = bin_from_vector(obs["bin"]).workspace(margin=EnvConfig().action_margin)  # the env's action box
         for push in push_candidates(truth, pinned_parcels(truth), suction.cup_radius, self.config.push_trials,
                                     (lo, hi)):
+            action = np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
+            if exact:
+                answer = self.shadow.foresee(functools.partial(self._look_past, action=action))
+                if answer is not None:
+                    self.last_push_rehearsals.append(answer["outcome"])
+                    if answer["holds"]:
+                        self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
+                        return action
+                    continue
+                exact = False  # the shadow's child failed: the twin from here on
             self.twin.sync(obs, library)
             result, after = self.twin.rehearse_push(push.start, push.direction)
             self.last_push_rehearsals.append(result.outcome)
@@ -573,10 +629,49 @@ class OraclePolicy(Policy):
                 continue
             if self._decision_holds():
                 self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
-                return np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
+                return action
         (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
-         self.last_ratios, self.last_object_ids) = decision
+         self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks) = decision
         return None
+
+    def _opening_pick(self, info: Mapping[str, Any], pick: np.ndarray) -> np.ndarray:
+        """At a dead end on the shadow (``opening_picks``): the first of the decision's failed rehearsals after
+        which, looked past on the shadow (``_look_past``), a pick holds, as a ``pose`` action; else ``pick``. Not
+        where a failure would end the episode."""
+        self.last_opening_rehearsals = []
+        config = info.get("env_config")
+        if self._decision_holds() or not isinstance(config, EnvConfig) \
+                or int(info.get("consecutive_failures", 0)) + 1 >= config.max_consecutive_failures:
+            return pick
+        for action, aim in self._failed_picks:
+            answer = self.shadow.foresee(functools.partial(
+                self._look_past, action=np.append(action, 1.0).astype(np.float32) if self.parting_pushes else action))
+            if answer is None:
+                break
+            self.last_opening_rehearsals.append(answer["outcome"])
+            if answer["holds"]:
+                self._aimed = aim
+                return action
+        return pick
+
+    def _look_past(self, env: Any, action: np.ndarray) -> dict[str, Any]:
+        """Run in the shadow's child (``ShadowCell.foresee``): the action (a parting push, or a pick that fails) as
+        the env steps it, then this oracle's decision on the pile it leaves, its rehearsals on the shadow there;
+        whether a pick holds. A push that does not run, an action that loses a parcel from the tote, and one that
+        ends the episode open nothing."""
+        before = len(env.scene.parcels)
+        obs, _, terminated, truncated, info = env.step(action)
+        answer = {"outcome": str(info["outcome"]), "holds": False}
+        if (is_push_action(action) and info["outcome"] != "pushed") or int(info["parcels_remaining"]) < before \
+                or terminated or truncated:
+            return answer
+        self._aimed, self._exact = None, True
+        try:
+            self.predict(obs, info, top_k=1)
+        except ValueError:
+            return answer
+        answer["holds"], answer["rehearsals"] = self._decision_holds(), list(self.last_rehearsals)
+        return answer
 
     def _decision_holds(self) -> bool:
         """Whether the last decision's pick held in a rehearsal, and (with ``confirmations``) is not fragile."""
@@ -596,6 +691,9 @@ class OraclePolicy(Policy):
         suction, library = self._context(info)
         self._note_outcome(info or {})
         self.last_rehearsals = []  # filled by _rehearsed_first; empty where this decision raises before it
+        self._rehearsed: list[int] = []  # the candidates rehearsed, in that order (_rehearsed_first)
+        self._failed_picks: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]]]] = []
+        self.last_exact = self._exact
         self.last_confirmations = []
         self.last_fragile = False  # set by _rehearsed_first
         if all(key in obs for key in LABEL_KEYS):
@@ -635,9 +733,14 @@ class OraclePolicy(Policy):
         self.last_scores = type(scores)(*(getattr(scores, f.name)[order] for f in dataclasses.fields(scores)))
         self.last_ratios = grasp.ratios[order]
         self.last_object_ids = owner[order]
-        k = int(owner[order[0]])
-        index = -1 if truth.asset_index is None else int(truth.asset_index[k])
-        self._aimed = (points[order[0]].copy(), normals[order[0]].copy(), (index, truth.coms[k].copy()))
+        def aim(i: int) -> tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]]:  # a pick, tagged with its parcel
+            k = int(owner[i])
+            index = -1 if truth.asset_index is None else int(truth.asset_index[k])
+            return points[i].copy(), normals[i].copy(), (index, truth.coms[k].copy())
+
+        self._aimed = aim(int(order[0]))
+        self._failed_picks = [(np.concatenate([points[i], normals[i]]).astype(np.float32), aim(i))
+                              for i, outcome in zip(self._rehearsed, self.last_rehearsals) if outcome != "success"]
         rank = 1.0 - np.arange(len(order)) / len(order)
         return Candidates(points=points[order].astype(np.float32), normals=normals[order].astype(np.float32),
                           scores=rank.astype(np.float32))
@@ -777,7 +880,8 @@ class OraclePolicy(Policy):
         for n, i in enumerate(dict.fromkeys([int(order[0]), *others, *spread])):
             if n > 0 and self.twin.refusal(points[i], normals[i]) is not None:
                 continue  # the cell would not move for it (the first is rehearsed whatever: it is the fallback)
-            result = self.twin.rehearse(points[i], normals[i])
+            result = self._rehearse(points[i], normals[i])
+            self._rehearsed.append(i)
             self.last_rehearsals.append(result.outcome)
             if result.outcome == "success":
                 peak = max(result.peak_ratios.values(), default=0.0)
@@ -795,6 +899,15 @@ class OraclePolicy(Policy):
                 break
         self.last_fragile = chosen is not None and best[0] < c.confirmations
         return order if chosen is None else np.concatenate([[chosen], order[order != chosen]])
+
+    def _rehearse(self, point: np.ndarray, normal: np.ndarray) -> PickResult:
+        """The pick as the cell runs it: on the shadow where this decision is exact, else on the posed twin."""
+        if self._exact:
+            result = self.shadow.rehearse(point, normal)
+            if result is not None:
+                return result
+            self._exact = self.last_exact = False  # its child failed: the twin from here on
+        return self.twin.rehearse(point, normal)
 
     @staticmethod
     def _real_mass_wrench(points: np.ndarray, normals: np.ndarray, owner: np.ndarray, truth: GroundTruth,

@@ -1,0 +1,233 @@
+"""The oracle's shadow of the cell: the env's own code on the env's pile, followed step by step, whose rehearsal of
+a pick is what the env then does, to the bit; and where it cannot follow, it says why and the twin takes over."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from parcelpick_env.camera.config import CameraConfig
+from parcelpick_env.envs.parcel_pick import ParcelPickEnv
+from policies.oracle import OraclePolicy
+from policies.shadow_cell import ShadowCell, shadow_config
+
+SMALL = dict(camera=CameraConfig(width=160, height=120), num_points=256)
+
+
+def stacked_env(action_mode: str = "pose_push", **kwargs) -> ParcelPickEnv:
+    return ParcelPickEnv(object_set="rectangular", layout="stacked", num_parcels=5, obs_mode="state_dict",
+                         action_mode=action_mode, **SMALL, **kwargs)
+
+
+def test_the_shadow_foresees_each_step_of_the_env_exactly_and_stays_its_state():
+    """Three of the oracle's decisions on a stacked pile: each rehearsal on the shadow gives the env's outcome, seal,
+    failure and simulated time to the bit, the shadow is left as it was, and after the env's step the shadow,
+    stepped alike, still has every parcel exactly where the env has it."""
+    env, oracle = stacked_env(), OraclePolicy()
+    try:
+        obs, info = env.reset(seed=3)
+        oracle.reset(3)
+        for _ in range(3):
+            action = oracle.act(obs, info)
+            assert oracle.shadow.live and oracle.last_exact, oracle.shadow.why_not
+            before = oracle.shadow.env.unwrapped.privileged_state()
+            foreseen = oracle.shadow.rehearse(action[:3], action[3:6])
+            after = oracle.shadow.env.unwrapped.privileged_state()
+            assert foreseen is not None and np.array_equal(before["parcel_position"], after["parcel_position"])
+            obs, _, terminated, truncated, info = env.step(action)
+            if action[6] >= 0:  # a pick (the oracle pushes only at a dead end)
+                assert (foreseen.outcome, foreseen.sim_time) == (info["outcome"], info["sim_time"])
+                assert (-1.0 if foreseen.seal is None else foreseen.seal) == info["seal"]
+                assert (foreseen.failure.as_dict()["condition"] if foreseen.failure else None) \
+                    == info["failure"]["condition"]
+            if terminated or truncated:
+                break
+            assert oracle.shadow.track(obs, info)  # (the next act tracks again: nothing left to step)
+    finally:
+        env.close()
+        oracle.shadow.close()
+
+
+def test_the_shadow_stops_following_an_observation_it_does_not_match_and_the_twin_rehearses():
+    env, oracle = stacked_env(), OraclePolicy()
+    try:
+        obs, info = env.reset(seed=1)
+        oracle.reset(1)
+        moved = {**obs, "parcel_position": obs["parcel_position"].copy()}
+        moved["parcel_position"][0, 0] += 1e-3  # a pile the shadow's is not
+        oracle.act(moved, info)
+        assert not oracle.shadow.live and "differ" in oracle.shadow.why_not
+        assert not oracle.last_exact and oracle.last_rehearsals  # rehearsed on the posed twin instead
+        assert oracle.shadow.rehearse(np.zeros(3), np.array([0.0, 0.0, 1.0])) is None
+        oracle.act(obs, info)  # it stays out for the rest of the episode, ...
+        assert not oracle.last_exact
+        oracle.reset(1)  # ... and follows the next one
+        oracle.act(obs, info)
+        assert oracle.last_exact
+    finally:
+        env.close()
+        oracle.shadow.close()
+
+
+def test_the_shadow_needs_the_privileged_info_and_pose_actions():
+    shadow = ShadowCell()
+    assert not shadow.track({}, {"privileged": False}) and "env_config" in shadow.why_not
+    env = stacked_env(action_mode="pixel")
+    try:
+        obs, info = env.reset(seed=0)
+        shadow.new_episode()
+        assert not shadow.track(obs, info) and "pixel" in shadow.why_not
+    finally:
+        env.close()
+        shadow.close()
+
+
+def test_exact_false_rehearses_on_the_twin_only():
+    env, oracle = stacked_env(), OraclePolicy(exact=False)
+    try:
+        obs, info = env.reset(seed=0)
+        oracle.reset(0)
+        oracle.act(obs, info)
+        assert oracle.shadow.env is None and not oracle.last_exact and oracle.last_rehearsals
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="exact"):
+        OraclePolicy(exact="yes")  # type: ignore[arg-type]
+
+
+def test_the_shadow_is_the_env_config_without_replays_egl_or_a_real_camera():
+    config = stacked_env(record_dir="runs/x").config
+    shadow = shadow_config(config)
+    assert shadow.record_dir is None and not shadow.sim.egl_rendering and shadow.obs_mode == "state_dict"
+    assert (shadow.grasp, shadow.bin, shadow.suction, shadow.arm, shadow.num_parcels, shadow.action_mode) \
+        == (config.grasp, config.bin, config.suction, config.arm, config.num_parcels, config.action_mode)
+    assert shadow.sim.timestep == config.sim.timestep and shadow.camera.width < config.camera.width
+
+
+def test_reset_builds_the_pile_of_a_given_scene_seed():
+    """``reset(options={'scene_seed': s})`` rebuilds the pile an episode logged as ``info['scene_seed']``, whatever
+    the reset seed; a seed that is not a whole number in range is refused by name."""
+    env = stacked_env()
+    try:
+        obs, info = env.reset(seed=7)
+        again, info2 = env.reset(seed=123, options={"scene_seed": info["scene_seed"]})
+        assert info2["scene_seed"] == info["scene_seed"]
+        assert np.array_equal(obs["parcel_position"], again["parcel_position"])
+        assert info2["env_config"] is env.config and info2["privileged"]
+        for bad in (-1, 2**31, 1.5, True, "3"):
+            with pytest.raises(ValueError, match="scene_seed"):
+                env.reset(options={"scene_seed": bad})
+    finally:
+        env.close()
+
+
+def test_looking_past_a_push_on_the_shadow_foresees_the_decision_the_env_then_meets():
+    """A parting push looked past in the shadow's child (the push as the env steps it, then the oracle's decision
+    there, rehearsed on the shadow) gives the push's outcome and the very rehearsals the oracle makes once the
+    env has taken that push."""
+    import functools
+
+    from parcelpick_env.assets.library import AssetLibrary
+    from parcelpick_env.envs.observation import bin_from_vector
+    from policies.oracle import ground_truth, pinned_parcels
+    from policies.parting import push_candidates
+
+    env, oracle = stacked_env(), OraclePolicy()
+    try:
+        obs, info = env.reset(seed=3)
+        oracle.reset(3)
+        assert oracle.shadow.track(obs, info)
+        truth = ground_truth(obs, AssetLibrary.default(info["asset_seed"]))
+        box = bin_from_vector(obs["bin"]).workspace(margin=env.config.action_margin)
+        push = push_candidates(truth, pinned_parcels(truth), env.config.suction.cup_radius, 1, box)[0]
+        action = np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
+        answer = oracle.shadow.foresee(functools.partial(oracle._look_past, action=action))
+        obs, _, _, _, info = env.step(action)
+        assert answer is not None and answer["outcome"] == info["outcome"] == "pushed"
+        oracle.shadow.expect(action)
+        oracle.act(obs, info)
+        assert oracle.last_exact and answer["rehearsals"] == oracle.last_rehearsals
+        assert answer["holds"] == ("success" in oracle.last_rehearsals)
+    finally:
+        env.close()
+        oracle.shadow.close()
+
+
+def test_at_a_dead_end_the_exact_oracle_looks_past_each_push_on_the_shadow_not_the_twin(monkeypatch):
+    env, oracle = stacked_env(), OraclePolicy()
+    try:
+        obs, info = env.reset(seed=3)
+        oracle.reset(3)
+        assert oracle.shadow.track(obs, info)
+        oracle.last_rehearsals = ["dropped"]  # a decision where nothing held
+        asked: list[np.ndarray] = []
+
+        def foresee(fn):
+            asked.append(fn.keywords["action"])
+            return {"outcome": "pushed", "holds": len(asked) == 2, "rehearsals": []}
+
+        monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+        monkeypatch.setattr(oracle.twin, "rehearse_push", lambda *a: pytest.fail("the twin looked past a push"))
+        action = oracle._parting_push(obs, info, exact=True)
+        assert action is not None and action[6] < 0 and np.array_equal(action, asked[1])
+        assert oracle.last_push_rehearsals == ["pushed", "pushed"]
+    finally:
+        env.close()
+        oracle.shadow.close()
+
+
+def test_at_a_dead_end_no_push_opens_the_oracle_spends_its_failing_pick_where_the_fall_opens_the_pile(monkeypatch):
+    """The decision's failed rehearsals are looked past on the shadow in order, and the first after which a pick
+    holds is made (tagged with its own parcel for the failed-pick memory); none is where one more failure ends the
+    episode, and where none opens the pile the ranking's first stands."""
+    env, oracle = stacked_env(), OraclePolicy()
+    try:
+        obs, info = env.reset(seed=3)
+        oracle.reset(3)
+        assert oracle.shadow.track(obs, info)
+        first = np.zeros(6, np.float32)
+        failed = [(np.full(6, k, np.float32), (np.full(3, k), np.zeros(3), (k, np.zeros(3)))) for k in (1, 2, 3)]
+        oracle.last_rehearsals, oracle._failed_picks = ["dropped"] * 3, failed
+        looked: list[np.ndarray] = []
+
+        def foresee(fn):
+            looked.append(fn.keywords["action"])
+            return {"outcome": "dropped", "holds": float(fn.keywords["action"][0]) == 2.0, "rehearsals": []}
+
+        monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+        made = oracle._opening_pick(info, first)
+        assert np.array_equal(made, failed[1][0]) and oracle._aimed[2][0] == 2
+        assert [a[0] for a in looked] == [1.0, 2.0] and all(a.shape == (7,) and a[6] > 0 for a in looked)
+        assert oracle.last_opening_rehearsals == ["dropped", "dropped"]
+        looked.clear()
+        ending = {**info, "consecutive_failures": env.config.max_consecutive_failures - 1}
+        assert oracle._opening_pick(ending, first) is first and not looked  # a failure here ends the episode
+        oracle._failed_picks = failed[:1]
+        assert oracle._opening_pick(info, first) is first and len(looked) == 1  # nothing opens: the first stands
+    finally:
+        env.close()
+        oracle.shadow.close()
+
+
+def test_looking_past_a_pick_that_fails_gives_the_decision_on_the_pile_it_leaves():
+    """A pick aimed at air above the pile touches nothing (``no_contact``) and leaves every parcel: looked past, the
+    decision there is the decision here."""
+    import functools
+
+    env, oracle = stacked_env(), OraclePolicy()
+    try:
+        obs, info = env.reset(seed=3)
+        oracle.reset(3)
+        assert oracle.shadow.track(obs, info)
+        oracle._exact = True  # as act has it on a pile the shadow follows
+        oracle.predict(obs, info, top_k=1)
+        oracle._exact = False
+        here = list(oracle.last_rehearsals)
+        top = float(obs["parcel_position"][: int(obs["parcel_count"]), 2].max())
+        air = np.array([0.0, 0.0, top + 0.2, 0.0, 0.0, 1.0, 1.0], np.float32)  # above the pile's middle
+        answer = oracle.shadow.foresee(functools.partial(oracle._look_past, action=air))
+        assert answer is not None and answer["outcome"] == "no_contact"
+        assert answer["rehearsals"] == here and answer["holds"] == ("success" in here)
+    finally:
+        env.close()
+        oracle.shadow.close()
