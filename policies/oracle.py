@@ -62,7 +62,9 @@ How it picks, per parcel, on the true meshes:
    oracle, in ``pose``): where nothing it rehearsed holds (or, with ``confirmations``, what held as synced did not
    hold on every twin with the pile's poses jittered), up to ``push_trials`` pushes (``policies/parting.py``)
    are rehearsed on the twin, and the first after which a pick holds on the pile the twin is left with is made
-   instead of the pick (``act``, ``_parting_push``). A perfect picker in a real cell parts a pile it cannot pick
+   instead of the pick (``act``, ``_parting_push``); on the shadow of the cell, each push is looked past there
+   (``_look_past``), and where none opens the pile, the failed pick made is the first of the decision's after
+   which a pick holds (``opening_picks``, ``_opening_pick``). A perfect picker in a real cell parts a pile it cannot pick
    from; without it the 30-parcel heap ends in dead ends no pick can open (results/ORACLE.md, 'A parting move').
 
 ``scores`` in the returned ``Candidates`` encode that rank (1 for the first, falling linearly); the
@@ -102,6 +104,9 @@ from policies.cell_twin import CellTwin, PoseJitter
 from policies.failed_picks import FailedPicks
 from policies.parting import push_candidates
 from policies.shadow_cell import ShadowCell
+
+# a pick the oracle proposed: its point, its normal and its parcel's (asset index, COM), the tag a failure is noted by
+Aim = tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]]
 
 STATE_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion", "parcel_com",
                                "parcel_mass", "parcel_asset_index", "parcel_extents", "parcel_friction", "bin")
@@ -170,9 +175,9 @@ class OracleConfig:
     # pick held on fewer than all is fragile: with parting pushes the oracle looks for a push first, as at a dead end.
     # Measured on the heap, not the default (results/ORACLE.md, 'Rehearsals confirmed on jittered twins')
     confirmations: int = 0
-    # rehearse on the shadow of the cell (``policies/shadow_cell.py``: the env's own code on the env's pile, with its
-    # contact history, followed step by step) where it follows the env, and on the posed twin otherwise. The push
-    # search's look-ahead, the refusals and the jittered confirmations stay on the twin
+    # rehearse, and look past parting pushes, on the shadow of the cell (``policies/shadow_cell.py``: the env's own
+    # code on the env's pile, with its contact history, followed step by step) where it follows the env, and on the
+    # posed twin otherwise. The plan's refusals, the lift tests and the jittered confirmations stay on the twin
     exact_rehearsals: bool = True
     # at a dead end on the shadow (no rehearsal holds, no parting push opens the pile), the failing pick made is the
     # first of the decision's failed rehearsals after which, looked past on the shadow, a pick holds: a pick that
@@ -539,14 +544,13 @@ class OraclePolicy(Policy):
         self.last_push_rehearsals: list[str] = []  # the outcome of each push rehearsed at the last dead end
         # ... and of each failed pick looked past on the shadow there, before one opened the pile (opening_picks)
         self.last_opening_rehearsals: list[str] = []
-        self._rehearsed: list[int] = []
-        self._failed_picks: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]]]] = []
+        self._rehearsed: list[int] = []  # the last decision's rehearsed candidates, in order (_rehearsed_first)
+        self._failed_picks: list[tuple[np.ndarray, Aim]] = []  # its failed rehearsals: (pose action, aim)
         # of each success of the last decision that was rehearsed again on jittered twins: how many held there
         self.last_confirmations: list[int] = []
         self.last_fragile = False  # the last decision's pick held as synced but not on every jittered twin
         self._jitter_rng = np.random.default_rng(0)  # the twins' pose jitter; reseeded by reset(seed)
-        # the last proposed pick: its point, its normal and its parcel's (asset index, COM), the failure's tag
-        self._aimed: tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]] | None = None
+        self._aimed: Aim | None = None  # the last proposed pick
         self.failed = FailedPicks(forget_on_success=False, at_contact=False)  # the approaches that failed
 
     def reset(self, seed: int | None = None) -> None:
@@ -691,8 +695,8 @@ class OraclePolicy(Policy):
         suction, library = self._context(info)
         self._note_outcome(info or {})
         self.last_rehearsals = []  # filled by _rehearsed_first; empty where this decision raises before it
-        self._rehearsed: list[int] = []  # the candidates rehearsed, in that order (_rehearsed_first)
-        self._failed_picks: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]]]] = []
+        self._rehearsed = []  # the candidates rehearsed, in that order (_rehearsed_first)
+        self._failed_picks = []
         self.last_exact = self._exact
         self.last_confirmations = []
         self.last_fragile = False  # set by _rehearsed_first
@@ -733,7 +737,7 @@ class OraclePolicy(Policy):
         self.last_scores = type(scores)(*(getattr(scores, f.name)[order] for f in dataclasses.fields(scores)))
         self.last_ratios = grasp.ratios[order]
         self.last_object_ids = owner[order]
-        def aim(i: int) -> tuple[np.ndarray, np.ndarray, tuple[int, np.ndarray]]:  # a pick, tagged with its parcel
+        def aim(i: int) -> Aim:
             k = int(owner[i])
             index = -1 if truth.asset_index is None else int(truth.asset_index[k])
             return points[i].copy(), normals[i].copy(), (index, truth.coms[k].copy())
