@@ -28,7 +28,7 @@ from parcelpick_env.envs.grasp import Failure, PickResult
 
 # the observation entries that must agree to the bit for the shadow to be the env's state
 MATCHED_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion")
-SHADOW_CAMERA = (64, 48)  # the shadow renders nothing the oracle reads: the smallest frame, with TinyRenderer
+SHADOW_CAMERA = (64, 48)  # the shadow renders nothing the oracle reads: a small frame, with TinyRenderer
 
 
 def shadow_config(config: EnvConfig) -> EnvConfig:
@@ -37,7 +37,7 @@ def shadow_config(config: EnvConfig) -> EnvConfig:
     return dataclasses.replace(
         config, obs_mode="state_dict", record_dir=None,
         sim=dataclasses.replace(config.sim, egl_rendering=False),
-        camera=dataclasses.replace(config.camera, width=SHADOW_CAMERA[0], height=SHADOW_CAMERA[1]))
+        camera=dataclasses.replace(config.camera, width=SHADOW_CAMERA[0], height=SHADOW_CAMERA[1], renderer="tiny"))
 
 
 class ShadowCell:

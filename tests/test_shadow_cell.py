@@ -102,6 +102,7 @@ def test_the_shadow_is_the_env_config_without_replays_egl_or_a_real_camera():
     assert (shadow.grasp, shadow.bin, shadow.suction, shadow.arm, shadow.num_parcels, shadow.action_mode) \
         == (config.grasp, config.bin, config.suction, config.arm, config.num_parcels, config.action_mode)
     assert shadow.sim.timestep == config.sim.timestep and shadow.camera.width < config.camera.width
+    assert shadow.camera.renderer == "tiny"  # asked for: no warning that EGL is off
 
 
 def test_reset_builds_the_pile_of_a_given_scene_seed():
