@@ -17,6 +17,7 @@ observation it does not match, a child that fails), ``live`` turns False and the
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 from typing import Any, Callable, Mapping
@@ -103,9 +104,14 @@ class ShadowCell:
         return all(np.array_equal(np.asarray(mine[k]), np.asarray(obs[k])) for k in MATCHED_KEYS)
 
     def rehearse(self, point: np.ndarray, normal: np.ndarray) -> PickResult | None:
-        """The pick as the env would run it now (``PickExecutor.attempt`` on the shadow, in a forked child), or
-        None where the child failed (then the shadow stops being used this episode)."""
-        answer = self.foresee(lambda env: _attempt(env, point, normal))
+        """The pick as the env would run it now: the action it would receive (float32, as every policy's action
+        reaches it; rounding a float64 pick to float32 has turned a held rehearsal into a drop), stepped on a forked
+        copy of the shadow, and that step's ``PickResult``. None where the child failed (then the shadow stops
+        being used this episode)."""
+        action = np.concatenate([point, normal]).astype(np.float32)
+        if self._config is not None and self._config.action_mode == "pose_push":
+            action = np.append(action, np.float32(1.0))
+        answer = self.foresee(functools.partial(_attempt, action=action))
         if answer is None:
             return None
         failure = answer["failure"]
@@ -157,9 +163,11 @@ class ShadowCell:
             pass
 
 
-def _attempt(env: Any, point: np.ndarray, normal: np.ndarray) -> dict[str, Any]:
-    """One attempt on ``env``'s cell, as ``ShadowCell.rehearse`` answers it."""
-    result = env.executor.attempt(env.scene, np.asarray(point, dtype=np.float64), np.asarray(normal, dtype=np.float64))
+def _attempt(env: Any, action: np.ndarray) -> dict[str, Any]:
+    """One pick stepped on ``env`` (``ParcelPickEnv.step``, as the real env would), as ``ShadowCell.rehearse``
+    answers it."""
+    env.step(action)
+    result = env.last_result
     return {"outcome": result.outcome, "seal": result.seal,
             "failure": None if result.failure is None else result.failure.as_dict(),
             "peak_ratios": {k: float(v) for k, v in result.peak_ratios.items()},

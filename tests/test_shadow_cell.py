@@ -37,6 +37,7 @@ def test_the_shadow_foresees_each_step_of_the_env_exactly_and_stays_its_state():
             obs, _, terminated, truncated, info = env.step(action)
             if action[6] >= 0:  # a pick (the oracle pushes only at a dead end)
                 assert (foreseen.outcome, foreseen.sim_time) == (info["outcome"], info["sim_time"])
+                assert foreseen.peak_ratios == env.last_result.peak_ratios  # every ring load, to the bit
                 assert (-1.0 if foreseen.seal is None else foreseen.seal) == info["seal"]
                 assert (foreseen.failure.as_dict()["condition"] if foreseen.failure else None) \
                     == info["failure"]["condition"]

@@ -123,6 +123,7 @@ class ParcelPickEnv(gym.Env):
         self.executor: PickExecutor | None = None
         self.scene: Scene | None = None
         self.frame: CameraFrame | None = None
+        self.last_result: PickResult | None = None  # the last step's whole result (peak ring ratios, moves, trace)
         self.recorder: EpisodeRecorder | None = None
         self.replay_path: Path | None = None
         self._ready_q: np.ndarray | None = None
@@ -284,6 +285,7 @@ class ParcelPickEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         options = options or {}
+        self.last_result = None
         if self.recorder is not None:
             self.recorder.close()
             self.recorder = None
@@ -342,6 +344,7 @@ class ParcelPickEnv(gym.Env):
                 executor.settle_pile(self.scene)
             lost = self._drop_departed()
             s["lost"] += lost
+        self.last_result = result
         reward = 0.0
         if result.outcome == "success":
             s["successes"] += 1
