@@ -435,7 +435,9 @@ def format_table(summary: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) 
         lines.append(f"Parcels lost from the bin (count against R_object): {o['lost']}, by the step that lost them: "
                      f"{steps or 'not logged'}")
     if (r := o.get("rehearsals")):
-        lines.append(f"Rehearsed on the cell's twin: {r['held']} picks held there, {r['held_failed']} of them failed "
+        where = (f"on the shadow of the cell ({r['exact']} of {r['held'] + r['unheld']}) or its twin"
+                 if r.get("exact") else "on the cell's twin")
+        lines.append(f"Rehearsed {where}: {r['held']} picks held there, {r['held_failed']} of them failed "
                      f"here; {r['unheld']} with none held there (dead ends), {r['unheld_succeeded']} of them "
                      "succeeded here")
     return "\n".join(lines)

@@ -65,14 +65,16 @@ def rehearsal_counts(attempt_logs: list[list[dict[str, Any]]]) -> dict[str, int]
     env: ``held`` picks made after a rehearsal that succeeded (the clean one, or the least loaded success where
     none was clean, which may come before later failed rehearsals), and ``held_failed`` of them the env failed
     (where twin and cell part); ``unheld`` picks for which no rehearsal succeeded (a dead end: the ranking's first
-    was made), and ``unheld_succeeded`` of them the env carried off. None where no attempt was rehearsed."""
+    was made), and ``unheld_succeeded`` of them the env carried off; ``exact`` of all of them were rehearsed on the
+    shadow of the cell (``exact`` records), the rest on its posed twin. None where no attempt was rehearsed."""
     rehearsed = [a for log in attempt_logs for a in log if a.get("rehearsals")]
     if not rehearsed:
         return None
     held = [a for a in rehearsed if "success" in a["rehearsals"]]
     unheld = [a for a in rehearsed if "success" not in a["rehearsals"]]
     return {"held": len(held), "held_failed": sum(a["outcome"] != "success" for a in held),
-            "unheld": len(unheld), "unheld_succeeded": sum(a["outcome"] == "success" for a in unheld)}
+            "unheld": len(unheld), "unheld_succeeded": sum(a["outcome"] == "success" for a in unheld),
+            "exact": sum(bool(a.get("exact")) for a in rehearsed)}
 
 
 def episode_verdicts(task: EpisodeTask) -> list[Verdicts]:

@@ -40,14 +40,15 @@ def test_the_clearance_summary_tells_rehearsed_picks_that_held_from_dead_ends():
            {"outcome": "dropped", "phase": "lift", "rehearsals": ["dropped", "success"]},  # twin and cell parted
            {"outcome": "success", "rehearsals": ["dropped", "dropped"]},  # a dead end the cell carried off
            {"outcome": "dropped", "phase": "lift", "rehearsals": ["collision"]},
-           {"outcome": "success", "rehearsals": ["success", "dropped"]},  # a marginal success, taken after all
+           {"outcome": "success", "rehearsals": ["success", "dropped"], "exact": True},  # marginal, on the shadow
            {"outcome": "success"}]  # not rehearsed
     counts = rehearsal_counts([log])
-    assert counts == {"held": 3, "held_failed": 1, "unheld": 2, "unheld_succeeded": 1}
+    assert counts == {"held": 3, "held_failed": 1, "unheld": 2, "unheld_succeeded": 1, "exact": 1}
     assert rehearsal_counts([[{"outcome": "success"}]]) is None
     episode = EpisodeResult("mixed", "stacked", 0, 0, attempts=6, successes=4, parcels_placed=4, parcels_cleared=4,
                             reason="cleared", outcomes={"success": 4, "dropped": 2}, replay=None, wall_time_s=1.0,
                             attempt_log=log)
     summary = summarise([episode])
     assert summary["overall"]["rehearsals"] == counts
-    assert "3 picks held there, 1 of them failed here; 2 with none held there" in format_table(summary)
+    assert "the shadow of the cell (1 of 5) or its twin: 3 picks held there, 1 of them failed here; 2 with none held" \
+        in format_table(summary)
