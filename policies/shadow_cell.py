@@ -28,8 +28,10 @@ import numpy as np
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.grasp import Failure, PickResult
 
-# the observation entries that must agree to the bit for the shadow to be the env's state
+# the observation entries that must agree to the bit for the shadow to be the env's state, and the info counts
+# that must agree for its episode to end where the env's does (an action the env refused moves no parcel)
 MATCHED_KEYS: tuple[str, ...] = ("parcel_mask", "parcel_position", "parcel_quaternion")
+MATCHED_COUNTS: tuple[str, ...] = ("attempts", "pushes", "consecutive_failures", "parcels_remaining")
 SHADOW_CAMERA = (64, 48)  # the shadow renders nothing the oracle reads: a small frame, with TinyRenderer
 
 
@@ -50,13 +52,14 @@ class ShadowCell:
         self.env: Any = None  # the shadow ParcelPickEnv, made on the first episode
         self._config: EnvConfig | None = None
         self._pending: np.ndarray | None = None  # the action the real env took since the last track
+        self._info: Mapping[str, Any] = {}  # the shadow's own info after its last reset or step
         self._started = False  # reset to this episode's pile
         self.live = False  # the shadow is the real env's state (checked at the last track)
         self.why_not: str | None = None  # why it is not live, once it stopped following
 
     def new_episode(self) -> None:
         """Forget the last episode: the next ``track`` builds this one's pile."""
-        self._pending, self._started, self.live, self.why_not = None, False, False, None
+        self._pending, self._started, self.live, self.why_not, self._info = None, False, False, None, {}
 
     def expect(self, action: np.ndarray) -> None:
         """The action about to be sent to the real env (followed at the next ``track``)."""
@@ -71,11 +74,11 @@ class ShadowCell:
             if not self._started:
                 self._start(info)
             elif self._pending is not None:
-                self.env.step(self._pending)
+                self._info = self.env.step(self._pending)[4]
             self._pending = None
-            self.live = self._matches(obs)
+            self.live = self._matches(obs, info)
             if not self.live:
-                self.why_not = "its parcels differ from the observation"
+                self.why_not = "its parcels or counts differ from the observation's"
         except _CannotFollow as exc:
             self.live, self.why_not = False, str(exc)
         except Exception as exc:  # noqa: BLE001 - a shadow that breaks leaves the oracle its twin, not a crash
@@ -95,11 +98,11 @@ class ShadowCell:
             from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 
             self.env, self._config = ParcelPickEnv(shadow_config(config)), config
-        self.env.reset(options={"scene_seed": int(scene_seed)})
+        self._info = self.env.reset(options={"scene_seed": int(scene_seed)})[1]
         self._started = True
 
-    def _matches(self, obs: Mapping[str, Any]) -> bool:
-        if not all(k in obs for k in MATCHED_KEYS):
+    def _matches(self, obs: Mapping[str, Any], info: Mapping[str, Any]) -> bool:
+        if not all(k in obs for k in MATCHED_KEYS) or any(info.get(k) != self._info.get(k) for k in MATCHED_COUNTS):
             return False
         mine = self.env.unwrapped.privileged_state()
         return all(np.array_equal(np.asarray(mine[k]), np.asarray(obs[k])) for k in MATCHED_KEYS)

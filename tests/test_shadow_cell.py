@@ -65,6 +65,10 @@ def test_the_shadow_stops_following_an_observation_it_does_not_match_and_the_twi
         oracle.reset(1)  # ... and follows the next one
         oracle.act(obs, info)
         assert oracle.last_exact
+        shadow = ShadowCell()  # an attempt the env counted and the shadow did not (a refused action moves nothing)
+        assert shadow.track(obs, info) and not shadow.track(obs, {**info, "attempts": info["attempts"] + 1})
+        assert "counts" in shadow.why_not
+        shadow.close()
     finally:
         env.close()
         oracle.shadow.close()
