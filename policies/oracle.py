@@ -88,7 +88,7 @@ from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.grasp import PickResult
 from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
-from parcelpick_env.envs.push import is_push_action
+from parcelpick_env.envs.push import is_push_action, pick_action
 from parcelpick_env.farthest_points import farthest_point_indices
 from parcelpick_env.robot.arm import ArmConfig
 from parcelpick_env.robot.gen3 import JOINTS, SuctionToolSpec
@@ -586,7 +586,7 @@ class OraclePolicy(Policy):
         if move is None and exact and self.config.opening_picks:
             pick = self._opening_pick(info or {}, pick)
         if move is None:
-            move = np.append(pick, 1.0).astype(np.float32) if self.parting_pushes else pick
+            move = pick_action(pick, self.action_mode)
         if self.config.exact_rehearsals:
             self.shadow.expect(move)
         return move
@@ -648,8 +648,7 @@ class OraclePolicy(Policy):
                 or int(info.get("consecutive_failures", 0)) + 1 >= config.max_consecutive_failures:
             return pick
         for action, aim in self._failed_picks:
-            answer = self.shadow.foresee(functools.partial(
-                self._look_past, action=np.append(action, 1.0).astype(np.float32) if self.parting_pushes else action))
+            answer = self.shadow.foresee(functools.partial(self._look_past, action=pick_action(action, self.action_mode)))
             if answer is None:
                 break
             self.last_opening_rehearsals.append(answer["outcome"])

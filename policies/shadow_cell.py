@@ -27,6 +27,7 @@ import numpy as np
 
 from parcelpick_env.envs.config import EnvConfig
 from parcelpick_env.envs.grasp import Failure, PickResult
+from parcelpick_env.envs.push import pick_action
 
 # the observation entries that must agree to the bit for the shadow to be the env's state, and the info counts
 # that must agree for its episode to end where the env's does (an action the env refused moves no parcel)
@@ -112,9 +113,9 @@ class ShadowCell:
         reaches it; rounding a float64 pick to float32 has turned a held rehearsal into a drop), stepped on a forked
         copy of the shadow, and that step's ``PickResult``. None where the child failed (then the shadow stops
         being used this episode)."""
-        action = np.concatenate([point, normal]).astype(np.float32)
-        if self._config is not None and self._config.action_mode == "pose_push":
-            action = np.append(action, np.float32(1.0))
+        if self._config is None:
+            return None
+        action = pick_action(np.concatenate([point, normal]), self._config.action_mode)
         answer = self.foresee(functools.partial(_attempt, action=action))
         if answer is None:
             return None

@@ -37,6 +37,13 @@ def is_push_action(action: np.ndarray) -> bool:
     return a.shape == (7,) and bool(a[6] < 0)
 
 
+def pick_action(pose: np.ndarray, action_mode: str) -> np.ndarray:
+    """A pick's ``pose`` action (point, outward normal) as the env's ``action_mode`` takes it: float32, with the kind
+    (1, a pick) appended in ``pose_push``."""
+    pose = np.asarray(pose, dtype=np.float32)
+    return np.append(pose, np.float32(1.0)) if action_mode == "pose_push" else pose
+
+
 def horizontal_direction(direction: np.ndarray) -> np.ndarray | None:
     """The unit horizontal part of ``direction``, or None where it has (almost) none."""
     d = np.array([float(direction[0]), float(direction[1]), 0.0])
