@@ -199,6 +199,22 @@ def failure_detail(attempt: dict[str, Any]) -> str | None:
     return None if kind is None else kind + (f" ({', '.join(extra)})" if extra else "")
 
 
+def decision_notes(policy: Any) -> dict[str, Any]:
+    """What a rehearsing policy (the oracle) says of the decision behind its last action, for the attempt's or push's
+    record; each entry only where it has something: ``rehearsals`` (on the cell's twin or shadow), ``exact`` (on the
+    shadow, the env's own state), ``confirmations`` (on jittered twins), ``push_rehearsals`` (the parting pushes
+    tried at a dead end, whether or not one was made) and ``opening_rehearsals`` (failed picks looked past there)."""
+    notes: dict[str, Any] = {}
+    if rehearsals := getattr(policy, "last_rehearsals", None):
+        notes["rehearsals"] = list(rehearsals)
+        if getattr(policy, "last_exact", False):
+            notes["exact"] = True
+    for key in ("confirmations", "push_rehearsals", "opening_rehearsals"):
+        if value := getattr(policy, f"last_{key}", None):
+            notes[key] = list(value)
+    return notes
+
+
 def episode_env_kwargs(task: EpisodeTask) -> dict[str, Any]:
     """The env's keywords for one episode of the grid: the config's own, the cell's pile and the attempt cap."""
     cfg = task.config
@@ -251,32 +267,17 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 _log_policy_extras(env.unwrapped, policy)
                 first = False
             audit = _audit(env.unwrapped, action) if cfg.audit_picks else None
-            rehearsals = getattr(policy, "last_rehearsals", None)  # the oracle's, on the cell's twin or shadow
-            exact = getattr(policy, "last_exact", False)  # ... on its shadow, the env's own state
-            opening = getattr(policy, "last_opening_rehearsals", None)  # failed picks looked past at a dead end
-            confirmations = getattr(policy, "last_confirmations", None)  # ... and on its jittered twins
-            pushes_rehearsed = getattr(policy, "last_push_rehearsals", None)
+            notes = decision_notes(policy)
             lost_before = int(info["parcels_lost"])
             obs, _, terminated, truncated, info = env.step(action)
             lost = {"lost": n} if (n := int(info["parcels_lost"]) - lost_before) else {}
             if is_push_action(action):
-                push_log.append({**attempt_record(info), "before": len(attempt_log), **lost,
-                                 **({"push_rehearsals": list(pushes_rehearsed)} if pushes_rehearsed else {})})
+                push_log.append({**attempt_record(info), "before": len(attempt_log), **lost, **notes})
                 if terminated or truncated:
                     break
                 continue
             outcomes[info["outcome"]] += 1
-            record = {**attempt_record(info), **lost}
-            if audit is not None:
-                record["audit"] = audit
-            if rehearsals:
-                record["rehearsals"] = list(rehearsals)
-                if exact:
-                    record["exact"] = True
-            if opening:
-                record["opening_rehearsals"] = list(opening)
-            if confirmations:
-                record["confirmations"] = list(confirmations)
+            record = {**attempt_record(info), **lost, **({"audit": audit} if audit is not None else {}), **notes}
             attempt_log.append(record)
             if terminated or truncated:
                 break

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, episode_tasks,
+from eval.clearance import (OUTCOMES, ClearanceConfig, EpisodeResult, attempt_record, decision_notes, episode_tasks,
                             evaluate_clearance, failure_detail, failure_kind, format_table, main, summarise,
                             tool_check_applies, tool_check_line, tool_check_settings)
 from fresh_process import in_fresh_process
@@ -111,6 +111,20 @@ def test_parting_pushes_are_counted_apart_from_attempts():
     assert o["outcomes"] == {"success": 3, "dropped": 2} and "unreachable: descend" not in o["failures"]
     assert "Parting pushes (no attempts): 2" in format_table(s)
     assert "Parting pushes" not in format_table(summarise([_result("mixed", "stacked", 1, 1, 1, 1, {"success": 1})]))
+
+
+def test_decision_notes_keep_what_the_oracle_tried_at_a_dead_end_even_where_no_push_was_made():
+    """The pushes rehearsed at a dead end go into the record of the pick that followed them, not only of a push made;
+    ``exact`` goes with rehearsals alone, and a policy that rehearses nothing adds nothing."""
+    from types import SimpleNamespace
+
+    oracle = SimpleNamespace(last_rehearsals=("dropped", "dropped"), last_exact=True, last_confirmations=[],
+                             last_push_rehearsals=["pushed", "unreachable"], last_opening_rehearsals=["dropped"])
+    assert decision_notes(oracle) == {"rehearsals": ["dropped", "dropped"], "exact": True,
+                                      "push_rehearsals": ["pushed", "unreachable"], "opening_rehearsals": ["dropped"]}
+    oracle.last_rehearsals = []
+    assert decision_notes(oracle) == {"push_rehearsals": ["pushed", "unreachable"], "opening_rehearsals": ["dropped"]}
+    assert decision_notes(SimpleNamespace()) == {}
 
 
 def test_parcels_lost_are_counted_by_the_step_that_lost_them():
