@@ -871,19 +871,20 @@ class OraclePolicy(Policy):
         torsion drops of every stacked cell); the twin simulates it. A success is taken at once where no ring
         ratio ever passed ``clean_peak``; one that outlived a brief violation (shorter than the cup's
         ``violation_time``) is marginal, and in the heap the env dropped such picks where the twin had held them,
-        so the rehearsals go on, and the least loaded success is taken if none is clean. Where none succeeds,
-        the ranking stands."""
+        so the rehearsals go on, and the least loaded success is taken if none is clean. A success on the shadow that
+        knocks a parcel out of the tote (R_object charges it: 5 parcels of the heap's 1,200) is not clean either;
+        one that loses fewer goes first. Where none succeeds, the ranking stands."""
         c = self.config
         if c.rehearsals == 0 or len(order) == 0:
             return order
         others = self._each_parcels_best(order, owner, {int(owner[order[0]])})
         spread = self._spread(order, points, normals, c.rehearsals)
         jitter = PoseJitter(self._jitter_rng, c.jitter_position, c.jitter_angle_deg)
-        chosen, best = None, (-1, -np.inf)  # (jittered twins held, -peak) of the best success so far
+        chosen, best = None, (-1, 0, -np.inf)  # (jittered twins held, -parcels lost, -peak) of the best success so far
         for n, i in enumerate(dict.fromkeys([int(order[0]), *others, *spread])):
             if n > 0 and self.twin.refusal(points[i], normals[i]) is not None:
                 continue  # the cell would not move for it (the first is rehearsed whatever: it is the fallback)
-            result = self._rehearse(points[i], normals[i])
+            result, lost = self._rehearse(points[i], normals[i])
             self._rehearsed.append(i)
             self.last_rehearsals.append(result.outcome)
             if result.outcome == "success":
@@ -894,23 +895,24 @@ class OraclePolicy(Policy):
                     held = sum(self.twin.rehearse(points[i], normals[i], jitter).outcome == "success"
                                for _ in range(c.confirmations))
                     self.last_confirmations.append(held)
-                if (held, -peak) > best:
-                    chosen, best = i, (held, -peak)
-                if clean and held == c.confirmations:
+                if (held, -lost, -peak) > best:
+                    chosen, best = i, (held, -lost, -peak)
+                if clean and held == c.confirmations and lost == 0:
                     break
             if len(self.last_rehearsals) == c.rehearsals:
                 break
         self.last_fragile = chosen is not None and best[0] < c.confirmations
         return order if chosen is None else np.concatenate([[chosen], order[order != chosen]])
 
-    def _rehearse(self, point: np.ndarray, normal: np.ndarray) -> PickResult:
-        """The pick as the cell runs it: on the shadow where this decision is exact, else on the posed twin."""
+    def _rehearse(self, point: np.ndarray, normal: np.ndarray) -> tuple[PickResult, int]:
+        """The pick as the cell runs it, and the parcels it knocks out of the tote: on the shadow where this decision
+        is exact, else on the posed twin (which does not settle the pile after the pick, so it counts none)."""
         if self._exact:
-            result = self.shadow.rehearse(point, normal)
-            if result is not None:
-                return result
+            rehearsed = self.shadow.rehearse(point, normal)
+            if rehearsed is not None:
+                return rehearsed
             self._exact = self.last_exact = False  # its child failed: the twin from here on
-        return self.twin.rehearse(point, normal)
+        return self.twin.rehearse(point, normal), 0
 
     @staticmethod
     def _real_mass_wrench(points: np.ndarray, normals: np.ndarray, owner: np.ndarray, truth: GroundTruth,

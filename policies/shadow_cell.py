@@ -108,11 +108,12 @@ class ShadowCell:
         mine = self.env.unwrapped.privileged_state()
         return all(np.array_equal(np.asarray(mine[k]), np.asarray(obs[k])) for k in MATCHED_KEYS)
 
-    def rehearse(self, point: np.ndarray, normal: np.ndarray) -> PickResult | None:
+    def rehearse(self, point: np.ndarray, normal: np.ndarray) -> tuple[PickResult, int] | None:
         """The pick as the env would run it now: the action it would receive (float32, as every policy's action
         reaches it; rounding a float64 pick to float32 has turned a held rehearsal into a drop), stepped on a forked
-        copy of the shadow, and that step's ``PickResult``. None where the child failed (then the shadow stops
-        being used this episode)."""
+        copy of the shadow: that step's ``PickResult``, and how many parcels it knocked out of the tote (the env's
+        ``parcels_lost``, which R_object charges). None where the child failed (then the shadow stops being used
+        this episode)."""
         if self._config is None:
             return None
         action = pick_action(np.concatenate([point, normal]), self._config.action_mode)
@@ -120,9 +121,10 @@ class ShadowCell:
         if answer is None:
             return None
         failure = answer["failure"]
-        return PickResult(answer["outcome"], Failure(**failure) if failure else None, seal=answer["seal"],
-                          peak_ratios=answer["peak_ratios"], sim_time=answer["sim_time"],
-                          dynamic_steps=answer["dynamic_steps"])
+        result = PickResult(answer["outcome"], Failure(**failure) if failure else None, seal=answer["seal"],
+                            peak_ratios=answer["peak_ratios"], sim_time=answer["sim_time"],
+                            dynamic_steps=answer["dynamic_steps"])
+        return result, answer["lost"]
 
     def foresee(self, fn: Callable[[Any], dict[str, Any]]) -> dict[str, Any] | None:
         """``fn(env)`` run on a forked copy of the shadow env, its JSON-able answer; the shadow itself is left as it
@@ -171,9 +173,11 @@ class ShadowCell:
 def _attempt(env: Any, action: np.ndarray) -> dict[str, Any]:
     """One pick stepped on ``env`` (``ParcelPickEnv.step``, as the real env would), as ``ShadowCell.rehearse``
     answers it."""
+    before = len(env.scene.parcels)
     env.step(action)
     result = env.last_result
-    return {"outcome": result.outcome, "seal": result.seal,
+    lost = before - len(env.scene.parcels) - (result.outcome == "success")  # the delivered parcel leaves the scene too
+    return {"outcome": result.outcome, "seal": result.seal, "lost": int(lost),
             "failure": None if result.failure is None else result.failure.as_dict(),
             "peak_ratios": {k: float(v) for k, v in result.peak_ratios.items()},
             "sim_time": float(result.sim_time), "dynamic_steps": int(result.dynamic_steps)}

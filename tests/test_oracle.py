@@ -296,6 +296,34 @@ def test_oracle_takes_the_first_pick_that_holds_cleanly_in_a_rehearsal_on_the_tw
     assert rank({}, rehearsals=0) == (order.tolist(), [], [])
 
 
+def test_a_success_that_knocks_a_parcel_out_of_the_tote_is_not_clean(monkeypatch):
+    """On the shadow a rehearsal also says how many parcels the pick knocked out of the tote, which R_object charges:
+    a clean success that loses one does not end the search, a later one that loses none goes first, and where every
+    success loses parcels the one that loses fewest is taken."""
+    from parcelpick_env.envs.grasp import Failure, PickResult
+
+    owner = np.array([0, 1, 2])
+    points = np.column_stack([np.arange(3.0), np.zeros(3), np.zeros(3)])
+    normals = np.tile([0.0, 0.0, 1.0], (3, 1))
+
+    def rank(outcomes: dict[int, tuple[str, int]]):
+        policy = OraclePolicy()
+        asked: list[int] = []
+
+        def rehearse(point, normal):
+            asked.append(int(point[0]))
+            outcome, lost = outcomes.get(int(point[0]), ("dropped", 0))
+            return PickResult(outcome, None if outcome == "success" else Failure("lift"), peak_ratios={"x": 0.4}), lost
+
+        monkeypatch.setattr(policy, "_rehearse", rehearse)
+        monkeypatch.setattr(policy.twin, "refusal", lambda point, normal: None)
+        return policy._rehearsed_first(np.arange(3), points, normals, owner).tolist(), asked
+
+    assert rank({0: ("success", 0), 2: ("success", 0)}) == ([0, 1, 2], [0])  # clean and lossless: taken at once
+    assert rank({0: ("success", 1), 2: ("success", 0)}) == ([2, 0, 1], [0, 1, 2])
+    assert rank({0: ("success", 2), 1: ("success", 1)})[0][0] == 1  # every success loses one: the fewest
+
+
 def test_with_confirmations_the_oracle_takes_the_success_that_held_on_most_jittered_twins(monkeypatch):
     """With ``confirmations`` = 2, a success that is not clean, or that follows a failed rehearsal, is rehearsed
     again on two twins with the pile's poses jittered; the success held on the most of them goes first (then the

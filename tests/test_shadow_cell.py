@@ -31,12 +31,15 @@ def test_the_shadow_foresees_each_step_of_the_env_exactly_and_stays_its_state():
             action = oracle.act(obs, info)
             assert oracle.shadow.live and oracle.last_exact, oracle.shadow.why_not
             before = oracle.shadow.env.unwrapped.privileged_state()
-            foreseen = oracle.shadow.rehearse(action[:3], action[3:6])
+            rehearsed = oracle.shadow.rehearse(action[:3], action[3:6])
             after = oracle.shadow.env.unwrapped.privileged_state()
-            assert foreseen is not None and np.array_equal(before["parcel_position"], after["parcel_position"])
+            assert rehearsed is not None and np.array_equal(before["parcel_position"], after["parcel_position"])
+            foreseen, lost = rehearsed
+            lost_before = info["parcels_lost"]
             obs, _, terminated, truncated, info = env.step(action)
             if action[6] >= 0:  # a pick (the oracle pushes only at a dead end)
                 assert (foreseen.outcome, foreseen.sim_time) == (info["outcome"], info["sim_time"])
+                assert lost == info["parcels_lost"] - lost_before
                 assert foreseen.peak_ratios == env.last_result.peak_ratios  # every ring load, to the bit
                 assert (-1.0 if foreseen.seal is None else foreseen.seal) == info["seal"]
                 assert (foreseen.failure.as_dict()["condition"] if foreseen.failure else None) \
@@ -44,6 +47,34 @@ def test_the_shadow_foresees_each_step_of_the_env_exactly_and_stays_its_state():
             if terminated or truncated:
                 break
             assert oracle.shadow.track(obs, info)  # (the next act tracks again: nothing left to step)
+    finally:
+        env.close()
+        oracle.shadow.close()
+
+
+def test_the_shadow_counts_the_parcels_a_pick_knocks_out_of_the_tote_as_the_env_does(monkeypatch):
+    """Each pick here also throws a parcel it did not take out of the tote (as the clearance test of the env's loss
+    path does): the shadow's rehearsal counts that one parcel, whether or not the pick itself delivered its own."""
+    from parcelpick_env.envs.grasp import PickExecutor
+
+    real = PickExecutor.attempt
+
+    def attempt(self, scene, point, normal):
+        result = real(self, scene, point, normal)
+        left = next(ps for ps in scene.parcels if self.sim.has_body(ps.body_id) and ps.body_id != result.body_id)
+        self.sim.set_body_pose(left.body_id, [5.0, 5.0, 0.5], [0.0, 0.0, 0.0, 1.0])
+        return result
+
+    env, oracle = stacked_env(), OraclePolicy()
+    try:
+        obs, info = env.reset(seed=3)
+        oracle.reset(3)
+        action = oracle.act(obs, info)
+        monkeypatch.setattr(PickExecutor, "attempt", attempt)
+        rehearsed = oracle.shadow.rehearse(action[:3], action[3:6])
+        assert rehearsed is not None and rehearsed[1] == 1 and rehearsed[0].outcome == "success"  # its own delivered
+        info_after = env.step(action)[4]
+        assert rehearsed[0].outcome == info_after["outcome"] and info_after["parcels_lost"] - info["parcels_lost"] == 1
     finally:
         env.close()
         oracle.shadow.close()
