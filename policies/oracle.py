@@ -167,6 +167,12 @@ class OracleConfig:
     # the env then runs in action_mode="pose_push"): this many parting pushes (policies/parting.py) are rehearsed
     # on the twin, and the first after which one of its picks holds there is taken instead of the pick
     push_trials: int = 16
+    # where none of the ``rehearsals`` holds, up to this many more: candidates the static hold model rejects
+    # (``_admissible``: a ring ratio of 1 or more hanging still) but that seal and whose tool is clear, the least
+    # loaded of each parcel in turn (``_last_resort``). The model is conservative where the cell's lift turns a
+    # tilted parcel down: in a heap's dead end a 1.34 kg parcel lying 30 deg askew on the only admissible one, its
+    # faces at ratio 1.3, held in 2 of 6 such rehearsals on the shadow (results/ORACLE.md). 0: none
+    last_resort_rehearsals: int = 16
     clean_peak: float = 1.0  # a rehearsed success whose ring ratios never passed this holds cleanly: taken at once
     # a success other than a clean first one (the decision's first rehearsal, no ring ratio above 1) is rehearsed on
     # this many twins with every parcel's pose jittered (``CellTwin.rehearse``, ``PoseJitter``: ``jitter_position``
@@ -200,12 +206,14 @@ class OracleConfig:
             raise ValueError(f"OracleConfig needs 0 <= max_face_tilt_deg <= last_resort_face_tilt_deg <= 90, got "
                              f"{self.max_face_tilt_deg!r}, {self.last_resort_face_tilt_deg!r}")
         if (self.reach_checks < 1 or self.confirm_checks < 0 or self.spread_checks < 0 or not self.spread_reach >= 0
-                or self.rehearsals < 0 or not self.clean_peak > 0 or self.push_trials < 0 or self.confirmations < 0):
+                or self.rehearsals < 0 or not self.clean_peak > 0 or self.push_trials < 0 or self.confirmations < 0
+                or self.last_resort_rehearsals < 0):
             raise ValueError(f"OracleConfig needs reach_checks >= 1, confirm_checks >= 0, spread_checks >= 0, "
-                             f"spread_reach >= 0, rehearsals >= 0, clean_peak > 0, push_trials >= 0 and "
-                             f"confirmations >= 0, got {self.reach_checks!r}, {self.confirm_checks!r}, "
-                             f"{self.spread_checks!r}, {self.spread_reach!r}, {self.rehearsals!r}, {self.clean_peak!r}, "
-                             f"{self.push_trials!r}, {self.confirmations!r}")
+                             f"spread_reach >= 0, rehearsals >= 0, clean_peak > 0, push_trials >= 0, "
+                             f"confirmations >= 0 and last_resort_rehearsals >= 0, got {self.reach_checks!r}, "
+                             f"{self.confirm_checks!r}, {self.spread_checks!r}, {self.spread_reach!r}, "
+                             f"{self.rehearsals!r}, {self.clean_peak!r}, {self.push_trials!r}, {self.confirmations!r}, "
+                             f"{self.last_resort_rehearsals!r}")
         if not (self.jitter_position >= 0 and self.jitter_angle_deg >= 0):
             raise ValueError(f"OracleConfig needs jitter_position >= 0 and jitter_angle_deg >= 0, got "
                              f"{self.jitter_position!r}, {self.jitter_angle_deg!r}")
@@ -500,17 +508,19 @@ class OraclePolicy(Policy):
 
     def __init__(self, config: OracleConfig | None = None, suction: SuctionConfig | None = None,
                  asset_seed: int | None = None, parting_pushes: bool = True, confirmations: int | None = None,
-                 exact: bool | None = None) -> None:
+                 exact: bool | None = None, last_resort: int | None = None) -> None:
         """``confirmations``, where given, replaces ``config``'s (``--policy-arg confirmations=2``: each success
         but a clean first one is rehearsed again on two jittered twins; ``OracleConfig.confirmations``), and so
-        does ``exact`` (``--policy-arg exact=false``: every rehearsal on the posed twin, none on the shadow of the
-        cell; ``OracleConfig.exact_rehearsals``)."""
+        do ``exact`` (``--policy-arg exact=false``: every rehearsal on the posed twin, none on the shadow of the
+        cell; ``OracleConfig.exact_rehearsals``) and ``last_resort`` (``--policy-arg last_resort=0``: no rehearsal
+        of what the hold model rejects; ``OracleConfig.last_resort_rehearsals``)."""
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
         if not isinstance(parting_pushes, bool):
             raise ValueError(f"parting_pushes must be true or false, got {parting_pushes!r}")
-        if confirmations is not None and (isinstance(confirmations, bool) or not isinstance(confirmations, int)):
-            raise ValueError(f"confirmations must be a whole number >= 0, got {confirmations!r}")
+        for name, count in (("confirmations", confirmations), ("last_resort", last_resort)):
+            if count is not None and (isinstance(count, bool) or not isinstance(count, int)):
+                raise ValueError(f"{name} must be a whole number >= 0, got {count!r}")
         if exact is not None and not isinstance(exact, bool):
             raise ValueError(f"exact must be true or false, got {exact!r}")
         # with parting pushes the oracle acts in the env's action_mode="pose_push" (eval/clearance.py makes it so;
@@ -525,6 +535,8 @@ class OraclePolicy(Policy):
             self.config = dataclasses.replace(self.config, confirmations=confirmations)
         if exact is not None:
             self.config = dataclasses.replace(self.config, exact_rehearsals=exact)
+        if last_resort is not None:
+            self.config = dataclasses.replace(self.config, last_resort_rehearsals=last_resort)
         # Used only when info does not carry the env's own cup and library seed (the env always does).
         self.suction = suction or defaults.suction
         self.asset_seed = defaults.asset_seed if asset_seed is None else int(asset_seed)
@@ -732,7 +744,7 @@ class OraclePolicy(Policy):
         if len(order) == 0:
             raise ValueError("the oracle finds no uncovered face that the tool can reach")
         order = self._reachable_first(order, points, normals, owner, truth)
-        order = self._rehearsed_first(order, points, normals, owner)[:top_k]
+        order = self._rehearsed_first(order, points, normals, owner, self._last_resort(order, owner, grasp))[:top_k]
         self.last_scores = type(scores)(*(getattr(scores, f.name)[order] for f in dataclasses.fields(scores)))
         self.last_ratios = grasp.ratios[order]
         self.last_object_ids = owner[order]
@@ -858,8 +870,8 @@ class OraclePolicy(Policy):
         approach = points[order] + self.config.spread_reach * normals[order]
         return [int(i) for i in order[farthest_point_indices(approach, min(n, len(order)))]]
 
-    def _rehearsed_first(self, order: np.ndarray, points: np.ndarray, normals: np.ndarray, owner: np.ndarray
-                         ) -> np.ndarray:
+    def _rehearsed_first(self, order: np.ndarray, points: np.ndarray, normals: np.ndarray, owner: np.ndarray,
+                         last_resort: Sequence[int] = ()) -> np.ndarray:
         """The ranked candidates with the first one that holds cleanly in a rehearsal on the twin moved to the front.
 
         Rehearsed in turn (``CellTwin.rehearse``, the env's whole attempt on a copy of the pile), at most
@@ -873,20 +885,35 @@ class OraclePolicy(Policy):
         ``violation_time``) is marginal, and in the heap the env dropped such picks where the twin had held them,
         so the rehearsals go on, and the least loaded success is taken if none is clean. A success on the shadow that
         knocks a parcel out of the tote (R_object charges it: 5 parcels of the heap's 1,200) is not clean either;
-        one that loses fewer goes first. Where none succeeds, the ranking stands."""
+        one that loses fewer goes first. Where none succeeds, the ``last_resort`` candidates (outside the ranking)
+        are rehearsed the same way, at most ``last_resort_rehearsals``, and one that succeeds goes first. Where
+        none does, the ranking stands."""
         c = self.config
         if c.rehearsals == 0 or len(order) == 0:
             return order
         others = self._each_parcels_best(order, owner, {int(owner[order[0]])})
         spread = self._spread(order, points, normals, c.rehearsals)
+        chosen = self._rehearse_in_turn([int(order[0]), *others, *spread], points, normals, c.rehearsals, True)
+        if chosen is None and c.last_resort_rehearsals:
+            chosen = self._rehearse_in_turn(list(last_resort), points, normals, c.last_resort_rehearsals, False)
+        return order if chosen is None else np.concatenate([[chosen], order[order != chosen]])
+
+    def _rehearse_in_turn(self, queue: Sequence[int], points: np.ndarray, normals: np.ndarray, limit: int,
+                          first_regardless: bool) -> int | None:
+        """``_rehearsed_first``'s pass over ``queue``: each candidate the cell's plan accepts (the first whatever,
+        where ``first_regardless``: it is the fallback) rehearsed until one succeeds cleanly or ``limit`` were;
+        the best success (most jittered twins held, fewest parcels lost, least loaded), or None. Sets
+        ``last_fragile``."""
+        c = self.config
         jitter = PoseJitter(self._jitter_rng, c.jitter_position, c.jitter_angle_deg)
-        chosen, best = None, (-1, 0, -np.inf)  # (jittered twins held, -parcels lost, -peak) of the best success so far
-        for n, i in enumerate(dict.fromkeys([int(order[0]), *others, *spread])):
-            if n > 0 and self.twin.refusal(points[i], normals[i]) is not None:
-                continue  # the cell would not move for it (the first is rehearsed whatever: it is the fallback)
+        chosen, best, count = None, (-1, 0, -np.inf), 0  # (jittered twins held, -parcels lost, -peak) of the best
+        for n, i in enumerate(dict.fromkeys(queue)):
+            if (n > 0 or not first_regardless) and self.twin.refusal(points[i], normals[i]) is not None:
+                continue  # the cell would not move for it
             result, lost = self._rehearse(points[i], normals[i])
             self._rehearsed.append(i)
             self.last_rehearsals.append(result.outcome)
+            count += 1
             if result.outcome == "success":
                 peak = max(result.peak_ratios.values(), default=0.0)
                 clean = peak <= c.clean_peak
@@ -899,10 +926,23 @@ class OraclePolicy(Policy):
                     chosen, best = i, (held, -lost, -peak)
                 if clean and held == c.confirmations and lost == 0:
                     break
-            if len(self.last_rehearsals) == c.rehearsals:
+            if count == limit:
                 break
         self.last_fragile = chosen is not None and best[0] < c.confirmations
-        return order if chosen is None else np.concatenate([[chosen], order[order != chosen]])
+        return chosen
+
+    def _last_resort(self, order: np.ndarray, owner: np.ndarray, grasp: PhysicalGrasp) -> list[int]:
+        """Candidates outside ``order`` that seal (``seal_floor``) with the tool clear, but that the hold model
+        rejects: the least loaded (``PhysicalGrasp.worst``) of every parcel, then every parcel's second, and so on;
+        at most ``spread_checks`` (each is asked of the cell's plan before it is rehearsed)."""
+        pool = np.setdiff1d(np.flatnonzero((grasp.seal >= self.config.seal_floor) & (grasp.collision > 0)), order)
+        pool = pool[np.argsort(grasp.worst[pool], kind="stable")]
+        parcels = owner[pool]
+        grouped = np.argsort(parcels, kind="stable")  # each parcel's candidates together, least loaded first
+        starts = np.r_[0, np.flatnonzero(np.diff(parcels[grouped])) + 1]
+        place = np.empty(len(pool), dtype=np.int64)  # each candidate's place among its parcel's
+        place[grouped] = np.arange(len(pool)) - np.repeat(starts, np.diff(np.r_[starts, len(pool)]))
+        return [int(i) for i in pool[np.lexsort((np.arange(len(pool)), place))][:self.config.spread_checks]]
 
     def _rehearse(self, point: np.ndarray, normal: np.ndarray) -> tuple[PickResult, int]:
         """The pick as the cell runs it, and the parcels it knocks out of the tote: on the shadow where this decision

@@ -324,6 +324,51 @@ def test_a_success_that_knocks_a_parcel_out_of_the_tote_is_not_clean(monkeypatch
     assert rank({0: ("success", 2), 1: ("success", 1)})[0][0] == 1  # every success loses one: the fewest
 
 
+def test_where_no_ranked_pick_holds_the_oracle_rehearses_what_the_hold_model_rejects(monkeypatch):
+    """The last resort: candidates outside the ranking that seal with the tool clear but that the static hold model
+    rejects, the least loaded of each parcel in turn, are rehearsed only where no ranked pick held (those the plan
+    refuses passed over), at most ``last_resort_rehearsals``; one that holds goes first."""
+    from parcelpick_env.envs.grasp import Failure, PickResult
+    from parcelpick_env.suction.physical import PhysicalGrasp
+    from policies.oracle import OracleConfig
+
+    # candidates 0-1 ranked (parcel 0); 2-5 outside the ranking: 2 and 3 on parcel 1, 4 on parcel 2, 5 unsealed
+    owner = np.array([0, 0, 1, 1, 2, 2])
+    worst = np.array([0.5, 0.6, 1.4, 1.3, 1.5, 1.1])
+    ratios = np.zeros((6, 6))
+    ratios[:, 0] = worst
+    grasp = PhysicalGrasp(seal=np.array([1.0, 1.0, 1.0, 0.9, 0.8, 0.1]), ratios=ratios, collision=np.ones(6),
+                          seats=np.zeros((6, 3)))
+    points = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    normals = np.tile([0.0, 0.0, 1.0], (6, 1))
+    order = np.array([0, 1])
+    assert OraclePolicy()._last_resort(order, owner, grasp) == [3, 4, 2]  # each parcel's least loaded, then the next
+
+    def rank(held: set[int], refused: set[int] = frozenset(), **config):
+        policy = OraclePolicy(OracleConfig(**config))
+        asked: list[int] = []
+
+        def rehearse(point, normal):
+            asked.append(int(point[0]))
+            ok = int(point[0]) in held
+            return PickResult("success" if ok else "dropped", None if ok else Failure("lift"), peak_ratios={"x": 0.9}), 0
+
+        monkeypatch.setattr(policy, "_rehearse", rehearse)
+        monkeypatch.setattr(policy.twin, "refusal", lambda point, normal: Failure("hover", condition="ik")
+                            if int(point[0]) in refused else None)
+        ranked = policy._rehearsed_first(order, points, normals, owner, policy._last_resort(order, owner, grasp))
+        return ranked.tolist(), asked
+
+    assert rank({1}) == ([1, 0], [0, 1])  # a ranked pick holds: nothing more
+    assert rank({4}) == ([4, 0, 1], [0, 1, 3, 4])  # none does: the least loaded of parcel 1, then parcel 2's
+    assert rank({4}, refused={3}) == ([4, 0, 1], [0, 1, 4])
+    assert rank({2}, last_resort_rehearsals=2) == ([0, 1], [0, 1, 3, 4])  # at most two more: the ranking stands
+    assert rank({4}, last_resort_rehearsals=0) == ([0, 1], [0, 1])
+    assert OraclePolicy(last_resort=0).config.last_resort_rehearsals == 0
+    with pytest.raises(ValueError, match="last_resort"):
+        OraclePolicy(last_resort=1.5)
+
+
 def test_with_confirmations_the_oracle_takes_the_success_that_held_on_most_jittered_twins(monkeypatch):
     """With ``confirmations`` = 2, a success that is not clean, or that follows a failed rehearsal, is rehearsed
     again on two twins with the pile's poses jittered; the success held on the most of them goes first (then the
