@@ -167,11 +167,11 @@ class OracleConfig:
     # the env then runs in action_mode="pose_push"): this many parting pushes (policies/parting.py) are rehearsed
     # on the twin, and the first after which one of its picks holds there is taken instead of the pick
     push_trials: int = 16
-    # where none of the ``rehearsals`` holds, up to this many more: candidates the static hold model rejects
-    # (``_admissible``: a ring ratio of 1 or more hanging still) but that seal and whose tool is clear, the least
-    # loaded of each parcel in turn (``_last_resort``). The model is conservative where the cell's lift turns a
-    # tilted parcel down: in a heap's dead end a 1.34 kg parcel lying 30 deg askew on the only admissible one, its
-    # faces at ratio 1.3, held in 2 of 6 such rehearsals on the shadow (results/ORACLE.md). 0: none
+    # where none of the ``rehearsals`` holds, up to this many more: candidates that seal with the tool clear but that
+    # ``_admissible`` rejects (a ring ratio of 1 or more hanging still, or a face steeper than ``max_face_tilt_deg``),
+    # the least loaded of each parcel in turn (``_last_resort``). That model is conservative: in a heap's dead end a
+    # 0.22 kg parcel taken by a vertical face held, and so did 2 of 6 picks of a 1.34 kg parcel lying 30 deg askew,
+    # its faces at a ratio of 1.3 (docs/cell.md). 0: none
     last_resort_rehearsals: int = 16
     clean_peak: float = 1.0  # a rehearsed success whose ring ratios never passed this holds cleanly: taken at once
     # a success other than a clean first one (the decision's first rehearsal, no ring ratio above 1) is rehearsed on
