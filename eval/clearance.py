@@ -143,13 +143,17 @@ class EpisodeResult:
     outcomes: dict[str, int]
     replay: str | None
     wall_time_s: float
-    attempt_log: list[dict[str, Any]] = field(default_factory=list)  # one attempt_record per attempt, in order
+    # one attempt_record per attempt, in order, with the ``action`` the env received (logged_action)
+    attempt_log: list[dict[str, Any]] = field(default_factory=list)
     # parting pushes (action_mode="pose_push", the oracle's parting_pushes): no attempts, so kept apart; each
     # record is attempt_record's with ``before``, the number of attempts made before it
     push_log: list[dict[str, Any]] = field(default_factory=list)
     # parcels that left the bin during the episode (the env's ``parcels_lost``); the step that lost them carries
     # ``lost`` in its attempt or push record
     parcels_lost: int = 0
+    # the env's modes the policy ran in; with each record's ``action`` they rebuild any step's state (eval/rebuild.py)
+    action_mode: str = "pose"
+    obs_mode: str = "pointcloud"
 
 
 def episode_tasks(config: ClearanceConfig) -> list[EpisodeTask]:
@@ -197,6 +201,17 @@ def failure_detail(attempt: dict[str, Any]) -> str | None:
     kind = failure_kind(attempt)
     extra = [str(attempt[k]) for k in ("link", "condition") if attempt.get(k)]
     return None if kind is None else kind + (f" ({', '.join(extra)})" if extra else "")
+
+
+def logged_action(action: Any) -> list[float | None] | None:
+    """The action as the env received it, for the step's record: float64 numbers (JSON keeps them to the bit), None
+    for a non-finite one (a policy with no candidate acts with NaN; the env refuses it either way); None for an
+    action that is no array of numbers (the env refuses it as invalid, and it cannot be replayed)."""
+    try:
+        numbers = np.asarray(action, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        return None
+    return [float(x) if np.isfinite(x) else None for x in numbers]
 
 
 def decision_notes(policy: Any) -> dict[str, Any]:
@@ -267,17 +282,17 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
                 _log_policy_extras(env.unwrapped, policy)
                 first = False
             audit = _audit(env.unwrapped, action) if cfg.audit_picks else None
-            notes = decision_notes(policy)
+            logged = {"action": logged_action(action), **decision_notes(policy)}
             lost_before = int(info["parcels_lost"])
             obs, _, terminated, truncated, info = env.step(action)
             lost = {"lost": n} if (n := int(info["parcels_lost"]) - lost_before) else {}
             if is_push_action(action):
-                push_log.append({**attempt_record(info), "before": len(attempt_log), **lost, **notes})
+                push_log.append({**attempt_record(info), "before": len(attempt_log), **lost, **logged})
                 if terminated or truncated:
                     break
                 continue
             outcomes[info["outcome"]] += 1
-            record = {**attempt_record(info), **lost, **({"audit": audit} if audit is not None else {}), **notes}
+            record = {**attempt_record(info), **lost, **({"audit": audit} if audit is not None else {}), **logged}
             attempt_log.append(record)
             if terminated or truncated:
                 break
@@ -290,7 +305,8 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         parcels_placed=int(info["parcels_placed"]), parcels_cleared=int(info["parcels_cleared"]),
         reason=str(info.get("reason", "truncated")), outcomes=dict(outcomes),
         replay=str(replay) if replay else None, wall_time_s=time.perf_counter() - start, attempt_log=attempt_log,
-        push_log=push_log, parcels_lost=int(info["parcels_lost"]))
+        push_log=push_log, parcels_lost=int(info["parcels_lost"]), action_mode=str(env_kwargs["action_mode"]),
+        obs_mode=obs_mode_of(policy))
 
 
 def _audit(env, action: np.ndarray) -> dict[str, Any] | None:
