@@ -277,7 +277,7 @@ def run_episode(task: EpisodeTask) -> EpisodeResult:
         push_log: list[dict[str, Any]] = []
         first = True
         while info.get("reason") != "cleared":  # an empty pile needs no attempt
-            action = _choose_action(policy, obs, info, env.unwrapped.action_space.shape)
+            action = choose_action(policy, obs, info, env.unwrapped.action_space.shape)
             if first:
                 _log_policy_extras(env.unwrapped, policy)
                 first = False
@@ -319,7 +319,7 @@ def _audit(env, action: np.ndarray) -> dict[str, Any] | None:
     return audit_pick(env, np.asarray(action)[:6]).to_dict()
 
 
-def _choose_action(policy, obs, info, shape) -> np.ndarray:
+def choose_action(policy, obs, info, shape) -> np.ndarray:
     """A policy that finds no candidate still spends an attempt, as a real robot cycle would."""
     try:
         return policy.act(obs, info)

@@ -9,9 +9,11 @@ policy again. Physics is deterministic on one host; across CPUs a stacked pile c
 (docs/evaluation.md), so each replayed step's outcome is checked against the log and the first that differs
 stops the rebuild, naming the step. A rebuilt state is never silently another one.
 
-``--record DIR`` writes the replayed steps as a rerun replay. ``--act`` lets the episode's policy, made afresh,
-decide at the rebuilt state and prints its action and what it tried (``decision_notes``); its memory of the
-episode (the picks it passes over after a failure) starts empty, so it may choose otherwise than it did then.
+``--record DIR`` writes the replayed steps as a rerun replay. ``--act`` lets the episode's policy decide at the
+rebuilt state and prints its action and what it tried (``decision_notes``). Made afresh there, its memory of the
+episode (the picks it passes over after a failure) is empty, so it may choose otherwise than it did then; with
+``--with-policy`` it acts at every replayed step as well (each action checked against the log, so as slow as
+the episode), and decides with the memory it had.
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ import numpy as np
 if __package__ in (None, ""):  # allow `python eval/rebuild.py` as well as `python -m eval.rebuild`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from eval.clearance import (ClearanceConfig, EpisodeTask, attempt_record, decision_notes,  # noqa: E402
-                            episode_env_kwargs, episode_policy, episode_tasks, failure_detail)
+from eval.clearance import (ClearanceConfig, EpisodeTask, attempt_record, choose_action,  # noqa: E402
+                            decision_notes, episode_env_kwargs, episode_policy, episode_tasks, failure_detail)
 from parcelpick_env.config_checks import config_from_dict  # noqa: E402
 
 COMPARED = ("outcome", "phase", "link", "condition", "body")  # what a replayed step must match in its logged record
@@ -131,6 +133,7 @@ class Rebuilt:
     episode: dict[str, Any]
     steps: list[LoggedStep]
     replayed: int
+    policy: Any = None  # the episode's policy where it acted along the replay (``with_policy``), else None
 
     @property
     def next_step(self) -> LoggedStep | None:
@@ -138,9 +141,10 @@ class Rebuilt:
 
 
 def rebuild(summary: Mapping[str, Any], objects: str, layout: str, episode: int, steps: int | None = None,
-            record_dir: str | None = None) -> Rebuilt:
+            record_dir: str | None = None, with_policy: bool = False) -> Rebuilt:
     """The env after the first ``steps`` logged steps of an episode (None: all but the last, the state its last
-    decision met), each checked against its record; ``ReplayDiverged`` at the first that ends otherwise."""
+    decision met), each checked against its record; ``ReplayDiverged`` at the first that ends otherwise. With
+    ``with_policy`` the episode's policy acts before each step too, and must act as logged."""
     import gymnasium as gym
 
     import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
@@ -156,9 +160,17 @@ def rebuild(summary: Mapping[str, Any], objects: str, layout: str, episode: int,
     if record_dir is not None:
         kwargs["record_dir"] = str(Path(record_dir) / f"{objects}-{layout}-ep{episode:03d}-step{count:03d}")
     env = gym.make("ParcelPick-v0", **kwargs)
+    policy = episode_policy(task.config) if with_policy else None
     try:
         obs, info = env.reset(seed=task.seed)
+        if policy is not None:
+            policy.reset(task.seed)
         for n, step in enumerate(logged[:count]):
+            if policy is not None:
+                action = np.asarray(choose_action(policy, obs, info, env.unwrapped.action_space.shape), np.float64)
+                if not np.array_equal(action, step.action, equal_nan=True):
+                    raise ReplayDiverged(f"step {n} ({step.kind} {step.index}): the policy acts otherwise than "
+                                         "logged (another host or version than the episode's?)")
             obs, _, _, _, info = env.step(step.action)
             got, want = attempt_record(info), step.record
             if any(got[k] != want.get(k) for k in COMPARED):
@@ -169,7 +181,7 @@ def rebuild(summary: Mapping[str, Any], objects: str, layout: str, episode: int,
     except BaseException:
         env.close()
         raise
-    return Rebuilt(env, obs, info, task, record, logged, count)
+    return Rebuilt(env, obs, info, task, record, logged, count, policy)
 
 
 def steps_before_attempt(steps: list[LoggedStep], attempt: int) -> int:
@@ -192,7 +204,10 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--before-attempt", type=int, default=None,
                        help="replay every step before this attempt (default: before the last step)")
     p.add_argument("--record", default=None, metavar="DIR", help="write the replayed steps as a rerun replay here")
-    p.add_argument("--act", action="store_true", help="let the episode's policy, made afresh, decide here")
+    p.add_argument("--act", action="store_true", help="let the episode's policy decide here (made afresh)")
+    p.add_argument("--with-policy", action="store_true",
+                   help="the policy acts at every replayed step too (checked against the log; as slow as the "
+                        "episode), so --act decides with the memory it had")
     return p
 
 
@@ -230,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
             from parcelpick_env.cli import check_output_path
 
             check_output_path(args.record, "--record", directory=True)
-        rebuilt = rebuild(summary, objects, layout, args.episode, steps, record_dir=args.record)
+        rebuilt = rebuild(summary, objects, layout, args.episode, steps, record_dir=args.record,
+                          with_policy=args.with_policy)
     except (ValueError, ReplayDiverged) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -261,15 +277,20 @@ def report(rebuilt: Rebuilt) -> str:
 
 
 def act_here(rebuilt: Rebuilt) -> str:
-    """The episode's policy, made afresh, acting once at the rebuilt state: its action and decision notes."""
-    policy = episode_policy(rebuilt.task.config)
-    policy.reset(rebuilt.task.seed)
-    action = np.asarray(policy.act(rebuilt.obs, rebuilt.info), dtype=np.float64)
+    """The episode's policy acting once at the rebuilt state (the one that acted along the replay, else made
+    afresh): its action, whether it is the logged one, and its decision notes."""
+    policy = rebuilt.policy
+    if policy is None:
+        policy = episode_policy(rebuilt.task.config)
+        policy.reset(rebuilt.task.seed)
+    action = np.asarray(choose_action(policy, rebuilt.obs, rebuilt.info, rebuilt.env.unwrapped.action_space.shape),
+                        dtype=np.float64)
     notes = decision_notes(policy)
     nxt = rebuilt.next_step
     same = "" if nxt is None else (" (as logged)" if np.array_equal(action, nxt.action, equal_nan=True)
                                    else f" (logged: {np.array2string(nxt.action, precision=4, separator=', ')})")
-    lines = [f"The policy ({rebuilt.task.config.policy}, made afresh: no memory of the episode) acts "
+    made = "with its memory of the replay" if rebuilt.policy is not None else "made afresh: no memory of the episode"
+    lines = [f"The policy ({rebuilt.task.config.policy}, {made}) acts "
              f"{np.array2string(action, precision=4, separator=', ')}{same}"]
     lines += [f"  {key}: {value}" for key, value in notes.items()]
     return "\n".join(lines)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from eval.clearance import ClearanceConfig, evaluate_clearance, logged_action
-from eval.rebuild import ReplayDiverged, episode_task, logged_steps, main, rebuild
+from eval.rebuild import ReplayDiverged, act_here, episode_task, logged_steps, main, rebuild
 from parcelpick_env.camera.config import CameraConfig
 
 CAMERA = CameraConfig(width=96, height=72)
@@ -88,6 +88,24 @@ def test_a_step_that_ends_otherwise_than_logged_stops_the_rebuild_naming_it(summ
         rebuild(edited, "rectangular", "scattered", 0, steps=1)
     with pytest.raises(ValueError, match="steps must be within 0-"):
         rebuild(summary, "rectangular", "scattered", 0, steps=99)
+
+
+def test_the_policy_replayed_along_acts_as_logged_and_a_policy_that_does_not_is_named(summary):
+    total = len(summary["episodes"][0]["attempt_log"])
+    rebuilt = rebuild(summary, "rectangular", "scattered", 0, steps=total - 1, with_policy=True)
+    try:  # the random policy's draws follow its seed, so with its memory it takes the logged last action
+        assert rebuilt.policy is not None and "(as logged)" in act_here(rebuilt)
+    finally:
+        rebuilt.env.close()
+    fresh = rebuild(summary, "rectangular", "scattered", 0, steps=total - 1)
+    try:  # made afresh, it draws its first action again
+        assert fresh.policy is None and "made afresh" in (text := act_here(fresh)) and "(logged: " in text
+    finally:
+        fresh.env.close()
+    edited = copy.deepcopy(summary)
+    edited["episodes"][0]["attempt_log"][0]["action"][0] += 1e-9
+    with pytest.raises(ReplayDiverged, match=r"step 0 \(attempt 0\): the policy acts otherwise than logged"):
+        rebuild(edited, "rectangular", "scattered", 0, steps=1, with_policy=True)
 
 
 def test_cli_rebuilds_reports_and_acts_or_exits_2_naming_the_argument(summary, tmp_path: Path, capsys):
