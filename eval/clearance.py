@@ -218,7 +218,8 @@ def decision_notes(policy: Any) -> dict[str, Any]:
     """What a rehearsing policy (the oracle) says of the decision behind its last action, for the attempt's or push's
     record; each entry only where it has something: ``rehearsals`` (on the cell's twin or shadow), ``exact`` (on the
     shadow, the env's own state), ``confirmations`` (on jittered twins), ``push_rehearsals`` (the parting pushes
-    tried at a dead end, whether or not one was made) and ``opening_rehearsals`` (failed picks looked past there)."""
+    tried at a dead end, whether or not one was made), ``opening_rehearsals`` (failed picks looked past there) and
+    ``onward`` (a push made there though no pick was foreseen to hold after it)."""
     notes: dict[str, Any] = {}
     if rehearsals := getattr(policy, "last_rehearsals", None):
         notes["rehearsals"] = list(rehearsals)
@@ -227,6 +228,8 @@ def decision_notes(policy: Any) -> dict[str, Any]:
     for key in ("confirmations", "push_rehearsals", "opening_rehearsals"):
         if value := getattr(policy, f"last_{key}", None):
             notes[key] = list(value)
+    if getattr(policy, "last_onward", False):
+        notes["onward"] = True
     return notes
 
 

@@ -189,6 +189,11 @@ class OracleConfig:
     # first of the decision's failed rehearsals after which, looked past on the shadow, a pick holds: a pick that
     # must fail anyway is spent where its fall opens the pile (never the one that would end the episode)
     opening_picks: bool = True
+    # at a dead end on the shadow where no opening pick holds either: this many parting pushes an episode are made
+    # anyway, the one (of those run cleanly) whose pile's decision came nearest to holding (the lowest peak ring
+    # ratio of its rehearsals), so that the next decision, with its own pushes, meets another pile: two pushes in
+    # a row, searched one at a time (a push is no attempt, and the env allows ``EnvConfig.max_pushes``). 0: none
+    onward_pushes: int = 2
     jitter_position: float = 0.0005
     jitter_angle_deg: float = 0.3
     reach_step: float = 0.05  # m between IK checks along the lift line
@@ -207,7 +212,7 @@ class OracleConfig:
                              f"{self.max_face_tilt_deg!r}, {self.last_resort_face_tilt_deg!r}")
         if (self.reach_checks < 1 or self.confirm_checks < 0 or self.spread_checks < 0 or not self.spread_reach >= 0
                 or self.rehearsals < 0 or not self.clean_peak > 0 or self.push_trials < 0 or self.confirmations < 0
-                or self.last_resort_rehearsals < 0):
+                or self.last_resort_rehearsals < 0 or self.onward_pushes < 0):
             raise ValueError(f"OracleConfig needs reach_checks >= 1, confirm_checks >= 0, spread_checks >= 0, "
                              f"spread_reach >= 0, rehearsals >= 0, clean_peak > 0, push_trials >= 0, "
                              f"confirmations >= 0 and last_resort_rehearsals >= 0, got {self.reach_checks!r}, "
@@ -508,17 +513,18 @@ class OraclePolicy(Policy):
 
     def __init__(self, config: OracleConfig | None = None, suction: SuctionConfig | None = None,
                  asset_seed: int | None = None, parting_pushes: bool = True, confirmations: int | None = None,
-                 exact: bool | None = None, last_resort: int | None = None) -> None:
+                 exact: bool | None = None, last_resort: int | None = None, onward: int | None = None) -> None:
         """``confirmations``, where given, replaces ``config``'s (``--policy-arg confirmations=2``: each success
         but a clean first one is rehearsed again on two jittered twins; ``OracleConfig.confirmations``), and so
         do ``exact`` (``--policy-arg exact=false``: every rehearsal on the posed twin, none on the shadow of the
-        cell; ``OracleConfig.exact_rehearsals``) and ``last_resort`` (``--policy-arg last_resort=0``: no rehearsal
-        of what the hold model rejects; ``OracleConfig.last_resort_rehearsals``)."""
+        cell; ``OracleConfig.exact_rehearsals``), ``last_resort`` (``--policy-arg last_resort=0``: no rehearsal
+        of what the hold model rejects; ``OracleConfig.last_resort_rehearsals``) and ``onward`` (``--policy-arg
+        onward=0``: no push made at a dead end without a pick foreseen to hold after it; ``OracleConfig.onward_pushes``)."""
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
         if not isinstance(parting_pushes, bool):
             raise ValueError(f"parting_pushes must be true or false, got {parting_pushes!r}")
-        for name, count in (("confirmations", confirmations), ("last_resort", last_resort)):
+        for name, count in (("confirmations", confirmations), ("last_resort", last_resort), ("onward", onward)):
             if count is not None and (isinstance(count, bool) or not isinstance(count, int)):
                 raise ValueError(f"{name} must be a whole number >= 0, got {count!r}")
         if exact is not None and not isinstance(exact, bool):
@@ -537,6 +543,8 @@ class OraclePolicy(Policy):
             self.config = dataclasses.replace(self.config, exact_rehearsals=exact)
         if last_resort is not None:
             self.config = dataclasses.replace(self.config, last_resort_rehearsals=last_resort)
+        if onward is not None:
+            self.config = dataclasses.replace(self.config, onward_pushes=onward)
         # Used only when info does not carry the env's own cup and library seed (the env always does).
         self.suction = suction or defaults.suction
         self.asset_seed = defaults.asset_seed if asset_seed is None else int(asset_seed)
@@ -556,6 +564,10 @@ class OraclePolicy(Policy):
         self.last_push_rehearsals: list[str] = []  # the outcome of each push rehearsed at the last dead end
         # ... and of each failed pick looked past on the shadow there, before one opened the pile (opening_picks)
         self.last_opening_rehearsals: list[str] = []
+        self.last_onward = False  # the last action is an onward push (``OracleConfig.onward_pushes``)
+        self._onward: np.ndarray | None = None  # the last dead end's onward push, if it offered one
+        self._onward_left = self.config.onward_pushes  # this episode's
+        self.last_nearest = np.inf  # the lowest peak ring ratio of the last decision's rehearsals
         self._rehearsed: list[int] = []  # the last decision's rehearsed candidates, in order (_rehearsed_first)
         self._failed_picks: list[tuple[np.ndarray, Aim]] = []  # its failed rehearsals: (pose action, aim)
         # of each success of the last decision that was rehearsed again on jittered twins: how many held there
@@ -569,6 +581,7 @@ class OraclePolicy(Policy):
         """A new episode: forget which picks failed (and reseed the rehearsals' pose jitter)."""
         self._aimed = None
         self._jitter_rng = np.random.default_rng(seed)
+        self._onward_left = self.config.onward_pushes
         self.failed.clear()
         self.shadow.new_episode()
 
@@ -586,7 +599,7 @@ class OraclePolicy(Policy):
         parting push where no rehearsal of the pick decision held and a rehearsed push leaves a pile where one
         does (``_parting_push``). With ``exact_rehearsals``, the shadow of the cell first takes the step the env
         took, and the decision's rehearsals run on it where its pile is the observed one."""
-        self.last_opening_rehearsals = []
+        self.last_opening_rehearsals, self.last_onward = [], False
         exact = self.config.exact_rehearsals and self.shadow.track(obs, info or {})
         self._exact = exact
         try:
@@ -595,10 +608,14 @@ class OraclePolicy(Policy):
             self._exact = False
         exact = exact and self.last_exact
         move = self._parting_push(obs, info, exact) if self.parting_pushes else None
+        opening = pick
         if move is None and exact and self.config.opening_picks:
-            pick = self._opening_pick(info or {}, pick)
+            opening = self._opening_pick(info or {}, pick)
+        if move is None and opening is pick and self._onward is not None and self._onward_left > 0:
+            move, self._aimed, self.last_onward = self._onward, None, True  # a push: no pick to note
+            self._onward_left -= 1
         if move is None:
-            move = pick_action(pick, self.action_mode)
+            move = pick_action(opening, self.action_mode)
         if self.config.exact_rehearsals:
             self.shadow.expect(move)
         return move
@@ -611,16 +628,19 @@ class OraclePolicy(Policy):
         again on the pile the twin was left with; the first push after which one of those rehearsals holds (and is
         not fragile) is taken. Otherwise the decision stands as made. With ``exact`` (the shadow of the cell follows
         the env), each push and the decision after it run on the shadow instead (``_look_past``), whose verdict
-        is the env's; the twin takes over if the shadow fails."""
-        self.last_push_rehearsals = []
+        is the env's; the twin takes over if the shadow fails. There, where none holds, the push run cleanly after
+        which the decision came nearest to holding is kept as the dead end's onward push (``OracleConfig.onward_pushes``)."""
+        self.last_push_rehearsals, self._onward = [], None
         info = info or {}
         if not self.last_rehearsals or self._decision_holds() or int(info.get("pushes_left", 1)) < 1:
             return None
         decision = (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
-                    self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks)
+                    self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks,
+                    self.last_nearest)
         suction, library = self._context(info)
         truth = ground_truth(obs, library)
         lo, hi = bin_from_vector(obs["bin"]).workspace(margin=EnvConfig().action_margin)  # the env's action box
+        nearest = np.inf
         for push in push_candidates(truth, pinned_parcels(truth), suction.cup_radius, self.config.push_trials,
                                     (lo, hi)):
             action = np.concatenate([push.start, push.direction, [-1.0]]).astype(np.float32)
@@ -631,6 +651,8 @@ class OraclePolicy(Policy):
                     if answer["holds"]:
                         self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
                         return action
+                    if answer.get("nearest", np.inf) < nearest:
+                        nearest, self._onward = answer["nearest"], action
                     continue
                 exact = False  # the shadow's child failed: the twin from here on
             self.twin.sync(obs, library)
@@ -647,7 +669,8 @@ class OraclePolicy(Policy):
                 self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
                 return action
         (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
-         self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks) = decision
+         self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks,
+         self.last_nearest) = decision
         return None
 
     def _opening_pick(self, info: Mapping[str, Any], pick: np.ndarray) -> np.ndarray:
@@ -686,6 +709,7 @@ class OraclePolicy(Policy):
         except ValueError:
             return answer
         answer["holds"], answer["rehearsals"] = self._decision_holds(), list(self.last_rehearsals)
+        answer["nearest"] = self.last_nearest
         return answer
 
     def _decision_holds(self) -> bool:
@@ -706,6 +730,7 @@ class OraclePolicy(Policy):
         suction, library = self._context(info)
         self._note_outcome(info or {})
         self.last_rehearsals = []  # filled by _rehearsed_first; empty where this decision raises before it
+        self.last_nearest = np.inf
         self._rehearsed = []  # the candidates rehearsed, in that order (_rehearsed_first)
         self._failed_picks = []
         self.last_exact = self._exact
@@ -913,6 +938,7 @@ class OraclePolicy(Policy):
             result, lost = self._rehearse(points[i], normals[i])
             self._rehearsed.append(i)
             self.last_rehearsals.append(result.outcome)
+            self.last_nearest = min(self.last_nearest, max(result.peak_ratios.values(), default=np.inf))
             count += 1
             if result.outcome == "success":
                 peak = max(result.peak_ratios.values(), default=0.0)

@@ -124,6 +124,8 @@ def test_decision_notes_keep_what_the_oracle_tried_at_a_dead_end_even_where_no_p
                                       "push_rehearsals": ["pushed", "unreachable"], "opening_rehearsals": ["dropped"]}
     oracle.last_rehearsals = []
     assert decision_notes(oracle) == {"push_rehearsals": ["pushed", "unreachable"], "opening_rehearsals": ["dropped"]}
+    oracle.last_onward = True  # a push made though nothing was foreseen to hold after it
+    assert decision_notes(oracle)["onward"] is True
     assert decision_notes(SimpleNamespace()) == {}
 
 

@@ -185,6 +185,7 @@ def test_looking_past_a_push_on_the_shadow_foresees_the_decision_the_env_then_me
         oracle.act(obs, info)
         assert oracle.last_exact and answer["rehearsals"] == oracle.last_rehearsals
         assert answer["holds"] == ("success" in oracle.last_rehearsals)
+        assert answer["nearest"] == oracle.last_nearest and np.isfinite(oracle.last_nearest)  # a pick was held
     finally:
         env.close()
         oracle.shadow.close()
@@ -244,6 +245,51 @@ def test_at_a_dead_end_no_push_opens_the_oracle_spends_its_failing_pick_where_th
     finally:
         env.close()
         oracle.shadow.close()
+
+
+def test_where_nothing_opens_the_pile_the_oracle_pushes_onward_nearest_to_holding_as_often_as_allowed(monkeypatch):
+    """At a dead end where no push looked past holds and no failing pick opens the pile, the push run cleanly whose
+    decision came nearest to holding (lowest peak ratio) is made instead of the failing pick, ``onward_pushes``
+    times an episode; a push that did not run cleanly (no decision after it) is never taken."""
+    from types import SimpleNamespace
+
+    env = stacked_env()
+    try:
+        obs, info = env.reset(seed=3)
+        for allowed in (2, 0):
+            oracle = OraclePolicy(onward=allowed)
+            oracle.reset(3)
+            pick = np.arange(6, dtype=np.float32)
+
+            def predict(obs, info=None, top_k=50, oracle=oracle):
+                oracle.last_rehearsals, oracle.last_exact, oracle._failed_picks = ["dropped"], True, []
+                return SimpleNamespace(best_action=lambda: pick)
+
+            calls: list[tuple[np.ndarray, float, bool]] = []
+
+            def foresee(fn, calls=calls):
+                k = len(calls) % 4
+                value, clean = (3.0, 1.5, 2.0, 0.5)[k], k != 3  # the fourth lowest, but it did not run cleanly
+                calls.append((fn.keywords["action"], value, clean))
+                answer = {"outcome": "pushed" if clean else "collision", "holds": False, "rehearsals": []}
+                return {**answer, "nearest": value} if clean else answer
+
+            monkeypatch.setattr(oracle, "predict", predict)
+            monkeypatch.setattr(oracle.shadow, "track", lambda *a: True)
+            monkeypatch.setattr(oracle.shadow, "expect", lambda *a: None)
+            monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+            for n in range(3):
+                start = len(calls)
+                made = oracle.act(obs, info)
+                listed = [(action, value) for action, value, clean in calls[start:] if clean]
+                assert len(calls) - start >= 4 and oracle.last_push_rehearsals[3] == "collision"
+                if n < allowed:
+                    assert oracle.last_onward and made[6] < 0
+                    assert np.array_equal(made, min(listed, key=lambda av: av[1])[0])
+                else:  # the budget spent (or none): the failing pick
+                    assert not oracle.last_onward and np.array_equal(made[:6], pick) and made[6] > 0
+    finally:
+        env.close()
 
 
 def test_looking_past_a_pick_that_fails_gives_the_decision_on_the_pile_it_leaves():
