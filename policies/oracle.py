@@ -215,10 +215,10 @@ class OracleConfig:
                 or self.last_resort_rehearsals < 0 or self.onward_pushes < 0):
             raise ValueError(f"OracleConfig needs reach_checks >= 1, confirm_checks >= 0, spread_checks >= 0, "
                              f"spread_reach >= 0, rehearsals >= 0, clean_peak > 0, push_trials >= 0, "
-                             f"confirmations >= 0 and last_resort_rehearsals >= 0, got {self.reach_checks!r}, "
-                             f"{self.confirm_checks!r}, {self.spread_checks!r}, {self.spread_reach!r}, "
-                             f"{self.rehearsals!r}, {self.clean_peak!r}, {self.push_trials!r}, {self.confirmations!r}, "
-                             f"{self.last_resort_rehearsals!r}")
+                             f"confirmations >= 0, last_resort_rehearsals >= 0 and onward_pushes >= 0, got "
+                             f"{self.reach_checks!r}, {self.confirm_checks!r}, {self.spread_checks!r}, "
+                             f"{self.spread_reach!r}, {self.rehearsals!r}, {self.clean_peak!r}, {self.push_trials!r}, "
+                             f"{self.confirmations!r}, {self.last_resort_rehearsals!r}, {self.onward_pushes!r}")
         if not (self.jitter_position >= 0 and self.jitter_angle_deg >= 0):
             raise ValueError(f"OracleConfig needs jitter_position >= 0 and jitter_angle_deg >= 0, got "
                              f"{self.jitter_position!r}, {self.jitter_angle_deg!r}")

@@ -367,6 +367,9 @@ def test_where_no_ranked_pick_holds_the_oracle_rehearses_what_the_hold_model_rej
     assert OraclePolicy(last_resort=0).config.last_resort_rehearsals == 0
     with pytest.raises(ValueError, match="last_resort"):
         OraclePolicy(last_resort=1.5)
+    assert OraclePolicy(onward=0).config.onward_pushes == 0 and OracleConfig().onward_pushes == 2
+    with pytest.raises(ValueError, match="onward"):
+        OraclePolicy(onward=True)
 
 
 def test_with_confirmations_the_oracle_takes_the_success_that_held_on_most_jittered_twins(monkeypatch):
@@ -532,7 +535,7 @@ def test_the_oracle_tool_probe_keeps_the_planners_clearance_between_true_surface
 
 @pytest.mark.parametrize("field, value", [("reach_checks", 0), ("confirm_checks", -1), ("probe_spacing", 0.0),
                                           ("min_seal", 1.5), ("rehearsals", -1), ("clean_peak", 0.0),
-                                          ("confirmations", -1), ("jitter_position", -0.001),
+                                          ("confirmations", -1), ("onward_pushes", -1), ("jitter_position", -0.001),
                                           ("jitter_angle_deg", float("nan"))])
 def test_a_wrong_oracle_config_value_is_refused_by_name(field, value):
     from policies.oracle import OracleConfig
