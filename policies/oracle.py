@@ -191,8 +191,9 @@ class OracleConfig:
     opening_picks: bool = True
     # at a dead end on the shadow where no opening pick holds either: this many parting pushes an episode are made
     # anyway, the one (of those run cleanly) whose pile's decision came nearest to holding (the lowest peak ring
-    # ratio of its rehearsals), so that the next decision, with its own pushes, meets another pile: two pushes in
-    # a row, searched one at a time (a push is no attempt, and the env allows ``EnvConfig.max_pushes``). 0: none
+    # ratio of its rehearsals; the first where none lifted, e.g. a last parcel that seals nowhere), so that the next
+    # decision, with its own pushes, meets another pile: two pushes in a row, searched one at a time (a push is no
+    # attempt, and the env allows ``EnvConfig.max_pushes``). 0: none
     onward_pushes: int = 2
     jitter_position: float = 0.0005
     jitter_angle_deg: float = 0.3
@@ -629,7 +630,9 @@ class OraclePolicy(Policy):
         not fragile) is taken. Otherwise the decision stands as made. With ``exact`` (the shadow of the cell follows
         the env), each push and the decision after it run on the shadow instead (``_look_past``), whose verdict
         is the env's; the twin takes over if the shadow fails. There, where none holds, the push run cleanly after
-        which the decision came nearest to holding is kept as the dead end's onward push (``OracleConfig.onward_pushes``)."""
+        which the decision came nearest to holding (the first, where no rehearsal after any lifted: a last parcel
+        that seals nowhere or that the arm cannot reach) is kept as the dead end's onward push
+        (``OracleConfig.onward_pushes``)."""
         self.last_push_rehearsals, self._onward = [], None
         info = info or {}
         if not self.last_rehearsals or self._decision_holds() or int(info.get("pushes_left", 1)) < 1:
@@ -651,8 +654,8 @@ class OraclePolicy(Policy):
                     if answer["holds"]:
                         self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
                         return action
-                    if answer.get("nearest", np.inf) < nearest:
-                        nearest, self._onward = answer["nearest"], action
+                    if "nearest" in answer and (self._onward is None or answer["nearest"] < nearest):
+                        nearest, self._onward = answer["nearest"], action  # ran cleanly; the first if none drops
                     continue
                 exact = False  # the shadow's child failed: the twin from here on
             self.twin.sync(obs, library)

@@ -247,47 +247,50 @@ def test_at_a_dead_end_no_push_opens_the_oracle_spends_its_failing_pick_where_th
         oracle.shadow.close()
 
 
-def test_where_nothing_opens_the_pile_the_oracle_pushes_onward_nearest_to_holding_as_often_as_allowed(monkeypatch):
+@pytest.mark.parametrize("allowed, listed, taken", [
+    (2, ((3.0, True), (1.5, True), (2.0, True), (0.5, False), (np.inf, True)), 1),  # the nearest run cleanly
+    (0, ((3.0, True), (1.5, True)), None),  # none allowed
+    (1, ((0.5, False), (np.inf, True), (np.inf, True)), 1)])  # nothing lifted after any: the first run cleanly
+def test_where_nothing_opens_the_pile_the_oracle_pushes_onward_nearest_to_holding_as_often_as_allowed(
+        monkeypatch, allowed, listed, taken):
     """At a dead end where no push looked past holds and no failing pick opens the pile, the push run cleanly whose
     decision came nearest to holding (lowest peak ratio) is made instead of the failing pick, ``onward_pushes``
-    times an episode; a push that did not run cleanly (no decision after it) is never taken."""
+    times an episode; a push that did not run cleanly (no decision after it) is never taken, and where nothing after
+    any push lifted (no ratio), the first run cleanly is."""
     from types import SimpleNamespace
 
     env = stacked_env()
     try:
         obs, info = env.reset(seed=3)
-        for allowed in (2, 0):
-            oracle = OraclePolicy(onward=allowed)
-            oracle.reset(3)
-            pick = np.arange(6, dtype=np.float32)
+        oracle = OraclePolicy(onward=allowed)
+        oracle.reset(3)
+        pick = np.arange(6, dtype=np.float32)
 
-            def predict(obs, info=None, top_k=50, oracle=oracle):
-                oracle.last_rehearsals, oracle.last_exact, oracle._failed_picks = ["dropped"], True, []
-                return SimpleNamespace(best_action=lambda: pick)
+        def predict(obs, info=None, top_k=50):
+            oracle.last_rehearsals, oracle.last_exact, oracle._failed_picks = ["dropped"], True, []
+            return SimpleNamespace(best_action=lambda: pick)
 
-            calls: list[tuple[np.ndarray, float, bool]] = []
+        calls: list[np.ndarray] = []
+        first = [0]  # this act's first call
 
-            def foresee(fn, calls=calls):
-                k = len(calls) % 4
-                value, clean = (3.0, 1.5, 2.0, 0.5)[k], k != 3  # the fourth lowest, but it did not run cleanly
-                calls.append((fn.keywords["action"], value, clean))
-                answer = {"outcome": "pushed" if clean else "collision", "holds": False, "rehearsals": []}
-                return {**answer, "nearest": value} if clean else answer
+        def foresee(fn):
+            value, clean = listed[(len(calls) - first[0]) % len(listed)]
+            calls.append(fn.keywords["action"])
+            answer = {"outcome": "pushed" if clean else "collision", "holds": False, "rehearsals": []}
+            return {**answer, "nearest": value} if clean else answer
 
-            monkeypatch.setattr(oracle, "predict", predict)
-            monkeypatch.setattr(oracle.shadow, "track", lambda *a: True)
-            monkeypatch.setattr(oracle.shadow, "expect", lambda *a: None)
-            monkeypatch.setattr(oracle.shadow, "foresee", foresee)
-            for n in range(3):
-                start = len(calls)
-                made = oracle.act(obs, info)
-                listed = [(action, value) for action, value, clean in calls[start:] if clean]
-                assert len(calls) - start >= 4 and oracle.last_push_rehearsals[3] == "collision"
-                if n < allowed:
-                    assert oracle.last_onward and made[6] < 0
-                    assert np.array_equal(made, min(listed, key=lambda av: av[1])[0])
-                else:  # the budget spent (or none): the failing pick
-                    assert not oracle.last_onward and np.array_equal(made[:6], pick) and made[6] > 0
+        monkeypatch.setattr(oracle, "predict", predict)
+        monkeypatch.setattr(oracle.shadow, "track", lambda *a: True)
+        monkeypatch.setattr(oracle.shadow, "expect", lambda *a: None)
+        monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+        for n in range(allowed + 1):
+            start = first[0] = len(calls)
+            made = oracle.act(obs, info)
+            assert len(calls) - start >= len(listed)  # every push listed was looked past
+            if n < allowed:
+                assert oracle.last_onward and made[6] < 0 and np.array_equal(made, calls[start + taken])
+            else:  # the budget spent (or none): the failing pick
+                assert not oracle.last_onward and np.array_equal(made[:6], pick) and made[6] > 0
     finally:
         env.close()
 
