@@ -195,7 +195,8 @@ def steps_before_attempt(steps: list[LoggedStep], attempt: int) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("summary", help="an eval/clearance.py --out summary")
+    p.add_argument("summary", help="an eval/clearance.py --out summary, or a report's RESULTS.json with --policy")
+    p.add_argument("--policy", default=None, help="with a report (eval/results.py): the method whose episode it is")
     p.add_argument("--objects", default=None, help="the episode's object set (default: the summary's only one)")
     p.add_argument("--layout", default=None, help="the episode's layout (default: the summary's only one)")
     p.add_argument("--episode", type=int, default=0, help="the episode's number within its cell")
@@ -220,22 +221,33 @@ def _only(summary: Mapping[str, Any], key: str, given: str | None) -> str:
     return held[0]
 
 
-def _load(path: str) -> dict[str, Any]:
+def load_summary(path: str, policy: str | None = None) -> dict[str, Any]:
+    """A clearance summary from ``path``: an ``eval/clearance.py --out`` file, or one method's clearance in a report
+    (``eval/results.py``'s RESULTS.json, ``policy`` naming the method); ``ValueError`` naming the file otherwise."""
     try:
         summary = json.loads(Path(path).read_text())
-        if not isinstance(summary.get("episodes"), list) or not isinstance(summary.get("config"), dict):
-            raise KeyError("episodes or config")
     except FileNotFoundError:
         raise ValueError(f"summary {path}: no such file") from None
-    except (OSError, ValueError, KeyError, AttributeError) as exc:
-        raise ValueError(f"summary {path}: not an eval/clearance.py summary ({type(exc).__name__}: {exc})") from None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"summary {path}: not JSON ({type(exc).__name__}: {exc})") from None
+    if isinstance(summary, dict) and isinstance(summary.get("policies"), dict):  # a report: one method's clearance
+        if policy not in summary["policies"]:
+            raise ValueError(f"summary {path}: a report; name its method with --policy (one of "
+                             f"{sorted(summary['policies'])})")
+        summary = summary["policies"][policy].get("clearance") or {}
+        if "config" not in summary:
+            raise ValueError(f"summary {path}: the report keeps no clearance config for {policy!r} (a report from "
+                             "before 2026-12-06, or one whose clearance did not run); regenerate it with this version")
+    if not (isinstance(summary, dict) and isinstance(summary.get("episodes"), list)
+            and isinstance(summary.get("config"), dict)):
+        raise ValueError(f"summary {path}: not an eval/clearance.py summary (no 'episodes' and 'config')")
     return summary
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        summary = _load(args.summary)
+        summary = load_summary(args.summary, args.policy)
         objects, layout = _only(summary, "objects", args.objects), _only(summary, "layout", args.layout)
         record = find_episode(summary, objects, layout, args.episode)
         steps = args.steps

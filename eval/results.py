@@ -169,8 +169,23 @@ def _clearance_part(name: str, report: ReportConfig, objects: str, layout: str, 
         if summary is None:
             return {"episodes": None, "error": error}
         return {"episodes": summary["episodes"], "error": error,
-                "checks": {k: summary.get(k) for k in CHECK_SETTINGS}}  # as this cell ran: the report says so
+                "checks": {k: summary.get(k) for k in CHECK_SETTINGS},  # as this cell ran: the report says so
+                "config": summary.get("config")}  # so each episode can be rebuilt (eval/rebuild.py)
     return run
+
+
+def pooled_config(configs: Sequence[dict[str, Any] | None]) -> dict[str, Any] | None:
+    """One ``ClearanceConfig`` dict for a policy's cells: the cells' own, over every object set and layout they
+    ran (an episode's pile seed depends on its cell, not on the grid around it); None where a cell kept none (a
+    part from before configs were kept) or the cells differ in anything else."""
+    if not configs or any(c is None for c in configs):
+        return None
+    rest = [{k: v for k, v in c.items() if k not in ("objects", "layouts")} for c in configs if c is not None]
+    if any(r != rest[0] for r in rest):
+        return None
+    ran = [c for c in configs if c is not None]
+    return {**rest[0], "objects": [o for o in OBJECT_SETS if any(o in c["objects"] for c in ran)],
+            "layouts": [la for la in LAYOUTS if any(la in c["layouts"] for c in ran)]}
 
 
 def cell_checks(name: str, cells: Sequence[dict[str, Any]]) -> tuple[dict[str, Any], str | None]:
@@ -330,6 +345,8 @@ def assemble(cfg: ResultsConfig) -> dict[str, Any]:
                 summary = summarise([EpisodeResult(**e) for e in episodes])
                 summary["episodes"] = episodes
                 summary.update(checks)
+                if (config := pooled_config([c.get("config") for c in cells if c is not None and c["episodes"]])):
+                    summary["config"] = config
                 entry["clearance"] = summary
             missing = sum(c is None for c in cells)
             if errors or missing:

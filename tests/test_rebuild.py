@@ -123,3 +123,14 @@ def test_cli_rebuilds_reports_and_acts_or_exits_2_naming_the_argument(summary, t
     (tmp_path / "bad.json").write_text("{}")
     assert main([str(tmp_path / "bad.json")]) == 2
     assert "not an eval/clearance.py summary" in capsys.readouterr().err
+
+
+def test_an_episode_of_a_report_is_rebuilt_from_its_methods_clearance(summary, tmp_path: Path, capsys):
+    report = tmp_path / "RESULTS.json"
+    report.write_text(json.dumps({"policies": {"random": {"clearance": summary}, "cao": {"clearance": None}}}))
+    assert main([str(report), "--policy", "random", "--steps", "1"]) == 0
+    assert "1 of" in capsys.readouterr().out
+    assert main([str(report)]) == 2
+    assert "a report; name its method with --policy (one of ['cao', 'random'])" in capsys.readouterr().err
+    assert main([str(report), "--policy", "cao"]) == 2
+    assert "keeps no clearance config for 'cao'" in capsys.readouterr().err

@@ -64,6 +64,8 @@ def _fake_clearance(calls: Counter, interrupt_at: str | None):
         summary = summarise(episodes)
         summary["episodes"] = [asdict(e) for e in episodes]
         summary.update(tool_check_settings(ClearanceConfig(policy=name)))  # as evaluate_clearance records it
+        summary["config"] = asdict(ClearanceConfig(policy=name, objects=objects, layouts=layouts,
+                                                   episodes=config.episodes))
         return summary, None
     return run
 
@@ -119,6 +121,8 @@ def test_the_whole_command_resumes_after_an_interrupt_and_writes_both_pages(tmp_
     clearance = dump["policies"]["cao"]["clearance"]
     assert clearance["tool_check"] is True and clearance["seal_check"] is True  # as the cells ran them
     assert clearance["retry_radius"] == 0.05
+    # one config over both cells, so any episode of the report can be rebuilt (eval/rebuild.py)
+    assert clearance["config"]["layouts"] == ["scattered", "stacked"] and clearance["config"]["policy"] == "cao"
     assert "Acting through the cell's tool check" in md and "does not go back within 0.05 m" in md
     assert "| x | 1 |" in (bench_dir / "RESULTS.md").read_text()
     # Nothing left to do: a third run only re-renders the pages.
@@ -300,3 +304,15 @@ def test_restore_refuses_a_report_measured_on_other_test_scenes_or_not_a_report(
         results.main(["--restore", str(tmp_path / "other.json"), "--test-data", str(tmp_path / "data"),
                       "--work", cfg.work])
     assert exit_info.value.code == 2 and "--restore" in capsys.readouterr().err
+
+
+def test_a_policys_cells_pool_into_one_config_only_where_they_agree_beyond_their_cell():
+    def cell(objects: str, layout: str, **kw) -> dict:
+        return json.loads(json.dumps(asdict(ClearanceConfig(policy="cao", objects=(objects,), layouts=(layout,), **kw))))
+
+    pooled = results.pooled_config([cell("mixed", "stacked"), cell("rectangular", "scattered")])
+    assert pooled is not None and pooled["objects"] == ["rectangular", "mixed"]  # the grid's order
+    assert pooled["layouts"] == ["scattered", "stacked"] and pooled["policy"] == "cao"
+    assert results.pooled_config([cell("mixed", "stacked"), cell("mixed", "scattered", seed=1)]) is None
+    assert results.pooled_config([cell("mixed", "stacked"), None]) is None  # a part from before configs were kept
+    assert results.pooled_config([]) is None
