@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> None:
     # the render and back-projection, then the normals at the sampled points only (Camera.normals_at)
     env.camera.capture = timed(env.camera.capture)
     env.camera.normals_at = timed(env.camera.normals_at)
-    resets, steps, step_capture, sim_times = [], [], [], []
+    resets, steps, step_capture, sim_times, step_outcomes = [], [], [], [], []
     outcomes: Counter[str] = Counter()
     causes: Counter[str] = Counter()
     placed = cleared = 0
@@ -84,6 +84,7 @@ def main(argv: list[str] | None = None) -> None:
             step_capture.append(sum(capture_times[n_cap:]))
             sim_times.append(info["sim_time"])
             outcomes[info["outcome"]] += 1
+            step_outcomes.append(info["outcome"])
             if info["failure_cause"]:
                 phase = f' ({info["failure_phase"]})' if info.get("failure_phase") else ""
                 causes[f'{info["outcome"]}: {info["failure_cause"]}{phase}'] += 1
@@ -103,6 +104,11 @@ def main(argv: list[str] | None = None) -> None:
         print(f"| reset, later ones, mean | {np.mean(resets[1:]):.2f} s |")
     print(f"| pick attempt wall time, mean | {steps_a.mean():.3f} s |")
     print(f"| pick attempt wall time, median / max | {np.median(steps_a):.3f} / {steps_a.max():.3f} s |")
+    # the mean hangs on the mix (a cheap `unreachable` plan against a whole pick), which another host's round-off
+    # changes with its piles: each outcome's own mean makes hosts comparable
+    by_outcome = {o: steps_a[[x == o for x in step_outcomes]] for o in sorted(outcomes)}
+    print("| pick attempt wall time by outcome, mean (attempts) | "
+          + ", ".join(f"{o} {t.mean():.3f} s ({len(t)})" for o, t in by_outcome.items()) + " |")
     print(f"| of which camera (render + normals), mean | {cap_a.mean():.3f} s |")
     print(f"| of which physics + planning, mean | {(steps_a - cap_a).mean():.3f} s |")
     print(f"| simulated time per attempt, mean | {np.mean(sim_times):.1f} s |")
