@@ -569,6 +569,7 @@ class OraclePolicy(Policy):
         self._onward: np.ndarray | None = None  # the last dead end's onward push, if it offered one
         self._onward_left = self.config.onward_pushes  # this episode's
         self.last_nearest = np.inf  # the lowest peak ring ratio of the last decision's rehearsals
+        self.last_lossy = False  # the last decision's pick held, but knocks a parcel out of the tote (the shadow)
         self._rehearsed: list[int] = []  # the last decision's rehearsed candidates, in order (_rehearsed_first)
         self._failed_picks: list[tuple[np.ndarray, Aim]] = []  # its failed rehearsals: (pose action, aim)
         # of each success of the last decision that was rehearsed again on jittered twins: how many held there
@@ -632,14 +633,19 @@ class OraclePolicy(Policy):
         is the env's; the twin takes over if the shadow fails. There, where none holds, the push run cleanly after
         which the decision came nearest to holding (the first, where no rehearsal after any lifted: a last parcel
         that seals nowhere or that the arm cannot reach) is kept as the dead end's onward push
-        (``OracleConfig.onward_pushes``)."""
+        (``OracleConfig.onward_pushes``). Where the pick holds but every success rehearsed knocks a parcel out of the
+        tote (``last_lossy``, on the shadow), the pushes are looked past too, and one is taken only where a pick then
+        holds losing none; else the lossy pick stands."""
         self.last_push_rehearsals, self._onward = [], None
         info = info or {}
-        if not self.last_rehearsals or self._decision_holds() or int(info.get("pushes_left", 1)) < 1:
+        lossy = self.last_lossy and self._decision_holds()
+        if not self.last_rehearsals or (self._decision_holds() and not lossy) or int(info.get("pushes_left", 1)) < 1:
             return None
+        if lossy and not exact:
+            return None  # the twin counts no parcel lost: it cannot tell a lossless pile from a lossy one
         decision = (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
                     self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks,
-                    self.last_nearest)
+                    self.last_nearest, self.last_lossy)
         suction, library = self._context(info)
         truth = ground_truth(obs, library)
         lo, hi = bin_from_vector(obs["bin"]).workspace(margin=EnvConfig().action_margin)  # the env's action box
@@ -651,9 +657,11 @@ class OraclePolicy(Policy):
                 answer = self.shadow.foresee(functools.partial(self._look_past, action=action))
                 if answer is not None:
                     self.last_push_rehearsals.append(answer["outcome"])
-                    if answer["holds"]:
+                    if answer["holds"] and not (lossy and answer.get("lossy", True)):
                         self._aimed = None  # a push is no pick: the cell's failed-pick memory is not told of it
                         return action
+                    if lossy:
+                        continue  # no onward push where a pick holds
                     if "nearest" in answer and (self._onward is None or answer["nearest"] < nearest):
                         nearest, self._onward = answer["nearest"], action  # ran cleanly; the first if none drops
                     continue
@@ -673,7 +681,7 @@ class OraclePolicy(Policy):
                 return action
         (self._aimed, self.last_rehearsals, self.last_confirmations, self.last_fragile, self.last_scores,
          self.last_ratios, self.last_object_ids, self.last_exact, self._rehearsed, self._failed_picks,
-         self.last_nearest) = decision
+         self.last_nearest, self.last_lossy) = decision
         return None
 
     def _opening_pick(self, info: Mapping[str, Any], pick: np.ndarray) -> np.ndarray:
@@ -712,7 +720,7 @@ class OraclePolicy(Policy):
         except ValueError:
             return answer
         answer["holds"], answer["rehearsals"] = self._decision_holds(), list(self.last_rehearsals)
-        answer["nearest"] = self.last_nearest
+        answer["nearest"], answer["lossy"] = self.last_nearest, self.last_lossy
         return answer
 
     def _decision_holds(self) -> bool:
@@ -733,7 +741,7 @@ class OraclePolicy(Policy):
         suction, library = self._context(info)
         self._note_outcome(info or {})
         self.last_rehearsals = []  # filled by _rehearsed_first; empty where this decision raises before it
-        self.last_nearest = np.inf
+        self.last_nearest, self.last_lossy = np.inf, False
         self._rehearsed = []  # the candidates rehearsed, in that order (_rehearsed_first)
         self._failed_picks = []
         self.last_exact = self._exact
@@ -958,6 +966,7 @@ class OraclePolicy(Policy):
             if count == limit:
                 break
         self.last_fragile = chosen is not None and best[0] < c.confirmations
+        self.last_lossy = chosen is not None and best[1] < 0
         return chosen
 
     def _last_resort(self, order: np.ndarray, owner: np.ndarray, grasp: PhysicalGrasp) -> list[int]:

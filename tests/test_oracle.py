@@ -317,11 +317,12 @@ def test_a_success_that_knocks_a_parcel_out_of_the_tote_is_not_clean(monkeypatch
 
         monkeypatch.setattr(policy, "_rehearse", rehearse)
         monkeypatch.setattr(policy.twin, "refusal", lambda point, normal: None)
-        return policy._rehearsed_first(np.arange(3), points, normals, owner).tolist(), asked
+        return policy._rehearsed_first(np.arange(3), points, normals, owner).tolist(), asked, policy.last_lossy
 
-    assert rank({0: ("success", 0), 2: ("success", 0)}) == ([0, 1, 2], [0])  # clean and lossless: taken at once
-    assert rank({0: ("success", 1), 2: ("success", 0)}) == ([2, 0, 1], [0, 1, 2])
-    assert rank({0: ("success", 2), 1: ("success", 1)})[0][0] == 1  # every success loses one: the fewest
+    assert rank({0: ("success", 0), 2: ("success", 0)}) == ([0, 1, 2], [0], False)  # clean, lossless: taken at once
+    assert rank({0: ("success", 1), 2: ("success", 0)}) == ([2, 0, 1], [0, 1, 2], False)
+    ranked, _, lossy = rank({0: ("success", 2), 1: ("success", 1)})
+    assert ranked[0] == 1 and lossy  # every success loses one: the fewest, and the decision says it is lossy
 
 
 def test_where_no_ranked_pick_holds_the_oracle_rehearses_what_the_hold_model_rejects(monkeypatch):

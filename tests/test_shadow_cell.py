@@ -295,6 +295,47 @@ def test_where_nothing_opens_the_pile_the_oracle_pushes_onward_nearest_to_holdin
         env.close()
 
 
+def test_where_every_success_knocks_a_parcel_out_a_push_is_taken_only_if_a_pick_then_loses_none(monkeypatch):
+    """A decision whose pick holds but knocks a parcel out of the tote (``last_lossy``) looks past the pushes on the
+    shadow: one after which a pick holds losing none is made; one after which the pick still loses a parcel is not;
+    where none helps the lossy pick stands, and no onward push is made in its place."""
+    from types import SimpleNamespace
+
+    env = stacked_env()
+    try:
+        obs, info = env.reset(seed=3)
+        pick = np.arange(6, dtype=np.float32)
+        for answers, pushed in (([(True, True), (True, False)], 1), ([(True, True), (False, False)], None)):
+            oracle = OraclePolicy()
+            oracle.reset(3)
+
+            def predict(obs, info=None, top_k=50, oracle=oracle):
+                oracle.last_rehearsals, oracle.last_exact, oracle._failed_picks = ["success"], True, []
+                oracle.last_lossy = True
+                return SimpleNamespace(best_action=lambda: pick)
+
+            calls: list[np.ndarray] = []
+
+            def foresee(fn, calls=calls, answers=answers):
+                holds, lossy = answers[min(len(calls), len(answers) - 1)]
+                calls.append(fn.keywords["action"])
+                return {"outcome": "pushed", "holds": holds, "lossy": lossy, "rehearsals": [], "nearest": 0.5}
+
+            monkeypatch.setattr(oracle, "predict", predict)
+            monkeypatch.setattr(oracle.shadow, "track", lambda *a: True)
+            monkeypatch.setattr(oracle.shadow, "expect", lambda *a: None)
+            monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+            made = oracle.act(obs, info)
+            if pushed is not None:
+                assert made[6] < 0 and np.array_equal(made, calls[pushed]) and len(calls) == 2
+            else:  # nothing loses less: the lossy pick, not an onward push
+                assert made[6] > 0 and np.array_equal(made[:6], pick) and not oracle.last_onward and len(calls) >= 2
+        oracle.last_rehearsals, oracle.last_lossy = ["success"], True
+        assert oracle._parting_push(obs, info, exact=False) is None  # the twin counts no loss: nothing to look for
+    finally:
+        env.close()
+
+
 def test_looking_past_a_pick_that_fails_gives_the_decision_on_the_pile_it_leaves():
     """A pick aimed at air above the pile touches nothing (``no_contact``) and leaves every parcel: looked past, the
     decision there is the decision here."""
