@@ -598,8 +598,8 @@ class OraclePolicy(Policy):
 
     def act(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
         """The best pick, as a ``pose`` action; with ``parting_pushes``, a ``pose_push`` action: that pick, or a
-        parting push where no rehearsal of the pick decision held and a rehearsed push leaves a pile where one
-        does (``_parting_push``). With ``exact_rehearsals``, the shadow of the cell first takes the step the env
+        parting push where no rehearsal of the pick decision held (or each that held knocked a parcel out) and a
+        rehearsed push leaves a pile where one does (``_parting_push``), or, at a dead end, an onward push. With ``exact_rehearsals``, the shadow of the cell first takes the step the env
         took, and the decision's rehearsals run on it where its pile is the observed one."""
         self.last_opening_rehearsals, self.last_onward = [], False
         exact = self.config.exact_rehearsals and self.shadow.track(obs, info or {})
@@ -666,6 +666,8 @@ class OraclePolicy(Policy):
                         nearest, self._onward = answer["nearest"], action  # ran cleanly; the first if none drops
                     continue
                 exact = False  # the shadow's child failed: the twin from here on
+                if lossy:
+                    break  # the twin cannot tell a lossless pile from a lossy one: the lossy pick stands
             self.twin.sync(obs, library)
             result, after = self.twin.rehearse_push(push.start, push.direction)
             self.last_push_rehearsals.append(result.outcome)
