@@ -98,7 +98,8 @@ def _from_json(cls: type, data: Mapping[str, Any]) -> Any:
 
 def _nested_dataclasses(cls: type) -> dict[str, type]:
     hints = typing.get_type_hints(cls)
-    return {f.name: hints[f.name] for f in fields(cls) if isinstance(hints[f.name], type) and is_dataclass(hints[f.name])}
+    return {f.name: hints[f.name] for f in fields(cls)
+            if isinstance(hints[f.name], type) and is_dataclass(hints[f.name])}
 
 
 def episode_task(summary: Mapping[str, Any], episode: Mapping[str, Any]) -> EpisodeTask:

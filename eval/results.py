@@ -178,12 +178,12 @@ def pooled_config(configs: Sequence[dict[str, Any] | None]) -> dict[str, Any] | 
     """One ``ClearanceConfig`` dict for a policy's cells: the cells' own, over every object set and layout they
     ran (an episode's pile seed depends on its cell, not on the grid around it); None where a cell kept none (a
     part from before configs were kept) or the cells differ in anything else."""
-    if not configs or any(c is None for c in configs):
+    ran = [c for c in configs if c is not None]
+    if not ran or len(ran) < len(configs):
         return None
-    rest = [{k: v for k, v in c.items() if k not in ("objects", "layouts")} for c in configs if c is not None]
+    rest = [{k: v for k, v in c.items() if k not in ("objects", "layouts")} for c in ran]
     if any(r != rest[0] for r in rest):
         return None
-    ran = [c for c in configs if c is not None]
     return {**rest[0], "objects": [o for o in OBJECT_SETS if any(o in c["objects"] for c in ran)],
             "layouts": [la for la in LAYOUTS if any(la in c["layouts"] for c in ran)]}
 

@@ -520,7 +520,8 @@ class OraclePolicy(Policy):
         do ``exact`` (``--policy-arg exact=false``: every rehearsal on the posed twin, none on the shadow of the
         cell; ``OracleConfig.exact_rehearsals``), ``last_resort`` (``--policy-arg last_resort=0``: no rehearsal
         of what the hold model rejects; ``OracleConfig.last_resort_rehearsals``) and ``onward`` (``--policy-arg
-        onward=0``: no push made at a dead end without a pick foreseen to hold after it; ``OracleConfig.onward_pushes``)."""
+        onward=0``: no push made at a dead end without a pick foreseen to hold after it;
+        ``OracleConfig.onward_pushes``)."""
         if config is not None and not isinstance(config, OracleConfig):
             raise ValueError(f"config must be an OracleConfig, got {type(config).__name__}")
         if not isinstance(parting_pushes, bool):
@@ -599,8 +600,9 @@ class OraclePolicy(Policy):
     def act(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
         """The best pick, as a ``pose`` action; with ``parting_pushes``, a ``pose_push`` action: that pick, or a
         parting push where no rehearsal of the pick decision held (or each that held knocked a parcel out) and a
-        rehearsed push leaves a pile where one does (``_parting_push``), or, at a dead end, an onward push. With ``exact_rehearsals``, the shadow of the cell first takes the step the env
-        took, and the decision's rehearsals run on it where its pile is the observed one."""
+        rehearsed push leaves a pile where one does (``_parting_push``), or, at a dead end, an onward push. With
+        ``exact_rehearsals``, the shadow of the cell first takes the step the env took, and the decision's
+        rehearsals run on it where its pile is the observed one."""
         self.last_opening_rehearsals, self.last_onward = [], False
         exact = self.config.exact_rehearsals and self.shadow.track(obs, info or {})
         self._exact = exact
