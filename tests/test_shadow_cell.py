@@ -247,6 +247,23 @@ def test_at_a_dead_end_no_push_opens_the_oracle_spends_its_failing_pick_where_th
         oracle.shadow.close()
 
 
+def _deciding(monkeypatch, oracle: OraclePolicy, pick: np.ndarray, rehearsals: list[str], lossy: bool,
+              foresee) -> None:
+    """``oracle`` on the shadow (``track``, ``expect`` stubbed) whose every decision rehearses ``rehearsals`` and ranks
+    ``pick`` first, and whose look-pasts answer ``foresee(fn)``: a dead end, or a lossy hold, without a pile for it."""
+    from types import SimpleNamespace
+
+    def predict(obs, info=None, top_k=50):
+        oracle.last_rehearsals, oracle.last_exact, oracle._failed_picks = list(rehearsals), True, []
+        oracle.last_lossy = lossy
+        return SimpleNamespace(best_action=lambda: pick)
+
+    monkeypatch.setattr(oracle, "predict", predict)
+    monkeypatch.setattr(oracle.shadow, "track", lambda *a: True)
+    monkeypatch.setattr(oracle.shadow, "expect", lambda *a: None)
+    monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+
+
 @pytest.mark.parametrize("allowed, listed, taken", [
     (2, ((3.0, True), (1.5, True), (2.0, True), (0.5, False), (np.inf, True)), 1),  # the nearest run cleanly
     (0, ((3.0, True), (1.5, True)), None),  # none allowed
@@ -257,19 +274,12 @@ def test_where_nothing_opens_the_pile_the_oracle_pushes_onward_nearest_to_holdin
     decision came nearest to holding (lowest peak ratio) is made instead of the failing pick, ``onward_pushes``
     times an episode; a push that did not run cleanly (no decision after it) is never taken, and where nothing after
     any push lifted (no ratio), the first run cleanly is."""
-    from types import SimpleNamespace
-
     env = stacked_env()
     try:
         obs, info = env.reset(seed=3)
         oracle = OraclePolicy(onward=allowed)
         oracle.reset(3)
         pick = np.arange(6, dtype=np.float32)
-
-        def predict(obs, info=None, top_k=50):
-            oracle.last_rehearsals, oracle.last_exact, oracle._failed_picks = ["dropped"], True, []
-            return SimpleNamespace(best_action=lambda: pick)
-
         calls: list[np.ndarray] = []
         first = [0]  # this act's first call
 
@@ -279,10 +289,7 @@ def test_where_nothing_opens_the_pile_the_oracle_pushes_onward_nearest_to_holdin
             answer = {"outcome": "pushed" if clean else "collision", "holds": False, "rehearsals": []}
             return {**answer, "nearest": value} if clean else answer
 
-        monkeypatch.setattr(oracle, "predict", predict)
-        monkeypatch.setattr(oracle.shadow, "track", lambda *a: True)
-        monkeypatch.setattr(oracle.shadow, "expect", lambda *a: None)
-        monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+        _deciding(monkeypatch, oracle, pick, ["dropped"], False, foresee)
         for n in range(allowed + 1):
             start = first[0] = len(calls)
             made = oracle.act(obs, info)
@@ -299,8 +306,6 @@ def test_where_every_success_knocks_a_parcel_out_a_push_is_taken_only_if_a_pick_
     """A decision whose pick holds but knocks a parcel out of the tote (``last_lossy``) looks past the pushes on the
     shadow: one after which a pick holds losing none is made; one after which the pick still loses a parcel is not;
     where none helps the lossy pick stands, and no onward push is made in its place."""
-    from types import SimpleNamespace
-
     env = stacked_env()
     try:
         obs, info = env.reset(seed=3)
@@ -308,12 +313,6 @@ def test_where_every_success_knocks_a_parcel_out_a_push_is_taken_only_if_a_pick_
         for answers, pushed in (([(True, True), (True, False)], 1), ([(True, True), (False, False)], None)):
             oracle = OraclePolicy()
             oracle.reset(3)
-
-            def predict(obs, info=None, top_k=50, oracle=oracle):
-                oracle.last_rehearsals, oracle.last_exact, oracle._failed_picks = ["success"], True, []
-                oracle.last_lossy = True
-                return SimpleNamespace(best_action=lambda: pick)
-
             calls: list[np.ndarray] = []
 
             def foresee(fn, calls=calls, answers=answers):
@@ -321,10 +320,7 @@ def test_where_every_success_knocks_a_parcel_out_a_push_is_taken_only_if_a_pick_
                 calls.append(fn.keywords["action"])
                 return {"outcome": "pushed", "holds": holds, "lossy": lossy, "rehearsals": [], "nearest": 0.5}
 
-            monkeypatch.setattr(oracle, "predict", predict)
-            monkeypatch.setattr(oracle.shadow, "track", lambda *a: True)
-            monkeypatch.setattr(oracle.shadow, "expect", lambda *a: None)
-            monkeypatch.setattr(oracle.shadow, "foresee", foresee)
+            _deciding(monkeypatch, oracle, pick, ["success"], True, foresee)
             made = oracle.act(obs, info)
             if pushed is not None:
                 assert made[6] < 0 and np.array_equal(made, calls[pushed]) and len(calls) == 2
