@@ -3,6 +3,8 @@ what a request keeps, the one definition of inside the bin, and the arm's reach 
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pybullet as pb
 import pytest
@@ -12,7 +14,8 @@ from scipy.spatial.transform import Rotation
 from parcelpick_env.assets.library import OBJECT_SETS
 from parcelpick_env.robot.arm import ArmConfig, Gen3Arm, reachability
 from parcelpick_env.scene.config import PileConfig
-from parcelpick_env.scene.pile import SCATTER_CAPACITY, build_pile, refresh_scene_poses
+from parcelpick_env.scene import pile
+from parcelpick_env.scene.pile import SCATTER_CAPACITY, STACKED_FILL_CAPACITY, build_pile, refresh_scene_poses
 from parcelpick_env.scene.scene import BinSpec
 from parcelpick_env.sim.config import SimConfig
 from parcelpick_env.sim.simulator import Simulator
@@ -162,17 +165,19 @@ def test_heavy_parcels_first_go_down_the_chute_first_and_land_low(sim, library):
         assert np.array_equal(x, y)
 
 
-def test_the_env_passes_its_induction_order_to_the_pile(library):
+def test_the_env_passes_its_induction_order_to_the_pile_and_reports_the_request(library):
     from parcelpick_env.camera.config import CameraConfig
     from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 
     env = ParcelPickEnv(num_parcels=8, layout="stacked", heavy_first_mass=0.5, num_points=256,
                         camera=CameraConfig(width=64, height=48))
     try:
-        env.reset(seed=2)
+        _, info = env.reset(seed=2)
         masses = [p.asset.mass for p in env.scene.parcels]
         heavy = sum(m > 0.5 for m in masses)
         assert 0 < heavy < len(masses) and all(m > 0.5 for m in masses[:heavy])  # the heavy class came first
+        # and the info reports what the request was
+        assert info["parcels_requested"] == 8 and info["pile_hull_fill"] == env.scene.meta["hull_fill"] > 0
     finally:
         env.close()
     with pytest.raises(ValueError, match="heavy_first_mass"):
@@ -201,6 +206,34 @@ def test_scattered_beyond_capacity_reports_the_shortfall(sim, library):
     meta = scene.meta
     assert meta["skipped"] > 0 and len(scene.parcels) >= SCATTER_CAPACITY
     assert meta["requested"] == 20 == meta["placed"] + meta["skipped"] + meta["lost"]
+
+
+def test_a_request_reports_its_hull_fill(sim, library):
+    """The fill is the asked parcels' hull volume (kept and lost alike) over the tote's inner volume."""
+    assert BinSpec().volume == pytest.approx(0.70 * 0.45 * 0.30)
+    scene = build_pile(sim, PileConfig(**TINY), 0, library)
+    hulls = sum(parcel.asset.mesh.convex_hull.volume for parcel in scene.parcels)
+    assert scene.meta["lost"] == 0 and scene.meta["hull_fill"] == pytest.approx(hulls / BinSpec().volume)
+    assert 0 < scene.meta["hull_fill"] < STACKED_FILL_CAPACITY
+
+
+def test_an_overfull_stacked_request_warns_once_and_loses_parcels(sim, library, caplog, monkeypatch):
+    """Ten cartons (about 15 L of hull) asked of a 7.5 L tote: the request is built, parcels spill over the
+    rim, and one warning names the fill (once a process, not once a pile)."""
+    spec = BinSpec(inner_size=(0.30, 0.25), wall_height=0.10)
+    config = PileConfig(num_parcels=10, object_set="rectangular", bin=spec)
+    monkeypatch.setitem(pile._WARNED, "overfull", False)
+    with caplog.at_level(logging.WARNING, logger=pile.__name__):
+        scene = build_pile(sim, config, 0, library)
+        build_pile(sim, config, 1, library)
+    warnings = [r.getMessage() for r in caplog.records if "convex hulls" in r.getMessage()]
+    assert len(warnings) == 1 and "10 rectangular parcels" in warnings[0], warnings
+    by_id = {asset.asset_id: asset for asset in library.assets("train", "rectangular")}
+    asked = [parcel.asset for parcel in scene.parcels] + [by_id[i] for i in scene.meta["lost_assets"]]
+    assert len(asked) == 10
+    fill = sum(asset.mesh.convex_hull.volume for asset in asked) / spec.volume
+    assert scene.meta["hull_fill"] == pytest.approx(fill) and fill > 1
+    assert scene.meta["lost"] > 0 and scene.meta["placed"] + scene.meta["lost"] == 10
 
 
 def test_inside_the_bin_is_one_definition():

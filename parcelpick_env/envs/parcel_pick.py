@@ -179,6 +179,7 @@ class ParcelPickEnv(gym.Env):
             "parcels_requested": scene.meta.get("requested", s["placed"]),
             "parcels_skipped": scene.meta.get("skipped", 0),
             "parcels_lost_at_reset": scene.meta.get("lost", 0),
+            "pile_hull_fill": scene.meta.get("hull_fill"),  # the request's hulls over the tote's volume
             "R_grasp": s["successes"] / s["attempts"] if s["attempts"] else 0.0,
             "R_object": s["cleared"] / s["placed"] if s["placed"] else 0.0,
             "consecutive_failures": s["consecutive"],

@@ -25,6 +25,11 @@ class BinSpec:
         if min(self.inner_size) <= 0 or self.wall_height <= 0 or self.wall_thickness <= 0:
             raise ValueError(f"BinSpec dimensions must be positive, got {self}")
 
+    @property
+    def volume(self) -> float:
+        """Inner volume up to the rim (m^3): what a stacked pile's parcels fill (``pile.hull_fill``)."""
+        return float(self.inner_size[0] * self.inner_size[1] * self.wall_height)
+
     def workspace(self, margin: float = 0.0, height: float = 1.0) -> np.ndarray:
         """(2, 3) [min, max] box over the inner floor: where picks happen (piles may top the rim)."""
         cx, cy = self.center_xy
