@@ -41,6 +41,8 @@ def test_registered_and_observation_has_no_ground_truth():
         assert obs["rgb"].shape == (120, 160, 3) and obs["depth"].shape == (120, 160, 1)
         assert info["intrinsics"].shape == (3, 3) and info["extrinsics"].shape == (4, 4)
         assert info["parcels_placed"] == 1 and info["attempts"] == 0
+        # a hand-made scene reports its fill too: one 30 x 20 x 10 cm box in the 0.70 x 0.45 x 0.30 m tote
+        assert info["pile_hull_fill"] == pytest.approx(0.30 * 0.20 * 0.10 / (0.70 * 0.45 * 0.30), rel=1e-3)
     finally:
         env.close()
 

@@ -149,12 +149,16 @@ class ParcelPickEnv(gym.Env):
         return lo, hi
 
     def _build_scene(self, seed: int, factory: Callable[[Simulator, int], Scene] | None) -> Scene:
+        from parcelpick_env.scene.pile import build_pile, hull_fill
+
         cfg = self.config
         if factory is not None:
-            return factory(self.sim, seed)
+            scene = factory(self.sim, seed)
+            # a hand-made scene is the request it was made with: its fill, so info's is always a number
+            scene.meta.setdefault("hull_fill", hull_fill([p.asset for p in scene.parcels], scene.bin))
+            return scene
         from parcelpick_env.assets.library import AssetLibrary
         from parcelpick_env.scene.config import PileConfig
-        from parcelpick_env.scene.pile import build_pile
 
         if self._library is None:
             self._library = AssetLibrary.default(cfg.asset_seed)
@@ -179,7 +183,7 @@ class ParcelPickEnv(gym.Env):
             "parcels_requested": scene.meta.get("requested", s["placed"]),
             "parcels_skipped": scene.meta.get("skipped", 0),
             "parcels_lost_at_reset": scene.meta.get("lost", 0),
-            "pile_hull_fill": scene.meta.get("hull_fill"),  # the request's hulls over the tote's volume
+            "pile_hull_fill": scene.meta["hull_fill"],  # the request's hulls over the tote's volume
             "R_grasp": s["successes"] / s["attempts"] if s["attempts"] else 0.0,
             "R_object": s["cleared"] / s["placed"] if s["placed"] else 0.0,
             "consecutive_failures": s["consecutive"],
