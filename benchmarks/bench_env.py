@@ -91,13 +91,6 @@ class PhaseClock:
         return "\n".join(rows)
 
 
-def _policy(name: str):
-    """A registered policy as the clearance evaluation runs it (its checkpoint, through the cell's tool check)."""
-    from eval.clearance import ClearanceConfig, episode_policy
-
-    return episode_policy(ClearanceConfig(policy=name))
-
-
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--parcels", type=int, default=30)
@@ -120,11 +113,11 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     policy = None
     if args.policy is not None:
-        from eval.clearance import choose_action
+        from eval.clearance import ClearanceConfig, choose_action, episode_policy
         from policies.registry import obs_mode_of
 
-        try:
-            policy = _policy(args.policy)
+        try:  # as the clearance evaluation runs it: its checkpoint, through the cell's tool check
+            policy = episode_policy(ClearanceConfig(policy=args.policy))
         except (KeyError, ValueError) as exc:
             ap.error(f"--policy: {exc}")
     modes = {} if policy is None else {"obs_mode": obs_mode_of(policy), "action_mode": policy.action_mode}

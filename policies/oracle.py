@@ -640,8 +640,9 @@ class OraclePolicy(Policy):
         holds losing none; else the lossy pick stands."""
         self.last_push_rehearsals, self._onward = [], None
         info = info or {}
-        lossy = self.last_lossy and self._decision_holds()
-        if not self.last_rehearsals or (self._decision_holds() and not lossy) or int(info.get("pushes_left", 1)) < 1:
+        holds = self._decision_holds()
+        lossy = self.last_lossy and holds
+        if not self.last_rehearsals or (holds and not lossy) or int(info.get("pushes_left", 1)) < 1:
             return None
         if lossy and not exact:
             return None  # the twin counts no parcel lost: it cannot tell a lossless pile from a lossy one
