@@ -7,8 +7,8 @@ import pytest
 import trimesh
 
 from parcelpick_env.assets.generator import (CARTON_SIDE_RANGE, CUP_MASS_LIMIT, GEN3_PAYLOAD, MAX_MASS, MIN_MASS,
-                                             PLANAR_LENGTH, PLANAR_WIDTH, TOOL_ALLOWANCE, TUBE_RADIUS,
-                                             generate_parcel)
+                                             PLANAR_LENGTH, PLANAR_WIDTH, ROLL_LENGTH, TOOL_ALLOWANCE, TUBE_LENGTH,
+                                             TUBE_RADIUS, generate_parcel)
 from parcelpick_env.assets.library import AssetLibrary
 from parcelpick_env.assets.parcel import CATEGORIES
 
@@ -51,7 +51,7 @@ def test_category_sizes():
         radius = asset.extents[1:].max() / 2  # axis along body x
         # the 48-gon's flats sit a little inside the radius
         assert TUBE_RADIUS[0] - 1e-3 <= radius <= TUBE_RADIUS[2] + 1e-6
-        assert 0.08 - 1e-6 <= asset.extents[0] <= 0.35 + 1e-6
+        assert ROLL_LENGTH[0] - 1e-6 <= asset.extents[0] <= TUBE_LENGTH[1] + 1e-6
 
 
 def test_masses_respect_the_arm(library):

@@ -143,7 +143,7 @@ def test_stacked_pile_is_inside_the_bin_and_at_rest(sim, library):
 def test_heavy_parcels_first_go_down_the_chute_first_and_land_low(sim, library):
     """The same draws in another order: the parcels over the mass go first (a stable partition), so they rest
     on the floor rather than on the others; a mass no parcel exceeds changes nothing, bit for bit."""
-    base = dict(num_parcels=12, layout="stacked", object_set="mixed")
+    base = dict(num_parcels=20, layout="stacked", object_set="mixed")
 
     def build(**kwargs):  # the scene, and how high each parcel's hull starts above the floor (while it exists)
         scene = build_pile(sim, PileConfig(**base, **kwargs), seed=0, library=library)
@@ -154,7 +154,7 @@ def test_heavy_parcels_first_go_down_the_chute_first_and_land_low(sim, library):
     masses = [p.asset.mass for p in drawn.parcels]
     cut = float(np.sort(masses)[-4])  # the three heaviest are over it
     routed, routed_bottoms = build(heavy_first_mass=cut)
-    assert len(drawn.parcels) == len(routed.parcels) == 12  # nothing lost either way, so scene order is drop order
+    assert len(drawn.parcels) == len(routed.parcels) == 20  # nothing lost either way, so scene order is drop order
     heavy = [p.asset.asset_id for p in drawn.parcels if p.asset.mass > cut]
     light = [p.asset.asset_id for p in drawn.parcels if p.asset.mass <= cut]
     assert len(heavy) == 3 and [p.asset.asset_id for p in routed.parcels] == heavy + light

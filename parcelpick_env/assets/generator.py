@@ -27,8 +27,10 @@ TOOL_ALLOWANCE = 0.5  # kg, the suction tool's share of the payload
 CUP_MASS_LIMIT = CARRY_LOAD_TARGET * CupSpec().rated_force(CELL_CUP_RADIUS) / SuctionConfig().gravity  # 2.31 kg
 MIN_MASS, MAX_MASS = 0.05, min(GEN3_PAYLOAD - TOOL_ALLOWANCE, CUP_MASS_LIMIT)  # kg, clipped after the density estimate
 
-# Effective densities (kg/m^3) of a whole parcel including its air: cartons are mostly empty.
-_DENSITY = {"rectangular": (80.0, 800.0), "planar": (150.0, 600.0), "cylindrical": (120.0, 500.0)}
+# Effective densities (kg/m^3) of a whole parcel including its air: most cartons are mostly empty, but small
+# boxes also carry books, tools and tins, so the range reaches past water; with the smalls' sizes this keeps the
+# heavy parcels that exercise the holding physics (docs/piles.md, 'Masses').
+_DENSITY = {"rectangular": (120.0, 1200.0), "planar": (150.0, 600.0), "cylindrical": (150.0, 750.0)}
 
 
 def _grid_box(counts: tuple[int, int, int]) -> trimesh.Trimesh:
@@ -74,14 +76,17 @@ def _smooth_field(uv: np.ndarray, rng: np.random.Generator, n_bumps: int, sigma:
     return (amp * np.exp(-d2 / (2 * sig**2))).sum(-1)
 
 
-CARTON_SIDE_RANGE = (0.05, 0.25)  # m: a small-parcel cell's cartons (docs/piles.md)
+# m: a smalls cell's cartons, sized so fifty stay inside the tote (docs/piles.md): 85% of sides from the
+# triangular (min, mode, max), the rest uniform over the whole range
+CARTON_SIDE_TRIANGLE = (0.05, 0.07, 0.14)
+CARTON_SIDE_RANGE = (0.05, 0.18)
 
 
 def _sample_carton_side(rng: np.random.Generator) -> float:
-    """5-25 cm, most between 7 and 15 cm (peaked near 8 cm): the small cartons of a smalls induction
-    cell sized for the Gen3 and a 0.70 x 0.50 m tote (docs/piles.md)."""
+    """5-18 cm, most between 6 and 12 cm (peaked near 7 cm): the small cartons of a smalls induction
+    cell sized for the Gen3 and a 0.70 x 0.45 m tote (docs/piles.md)."""
     lo, hi = CARTON_SIDE_RANGE
-    return float(rng.triangular(lo, 0.08, 0.18) if rng.random() < 0.85 else rng.uniform(lo, hi))
+    return float(rng.triangular(*CARTON_SIDE_TRIANGLE) if rng.random() < 0.85 else rng.uniform(lo, hi))
 
 
 def _rectangular(rng: np.random.Generator) -> trimesh.Trimesh:
@@ -143,18 +148,20 @@ def _planar(rng: np.random.Generator) -> trimesh.Trimesh:
     return trimesh.Trimesh(verts, mesh.faces, process=False)
 
 
-# m: (min, mode, max) tube radius. Mailing tubes of 70-140 mm diameter, most near 80 mm: the 40 mm bellows
+# m: (min, mode, max) tube radius. Mailing tubes of 70-100 mm diameter, most near 76 mm: the 40 mm bellows
 # cup (suction/config.CELL_CUP_RADIUS) seals a crown only from R = 29 mm and with a usable margin (seal
-# >= 0.3) from R = 34 mm, so thinner tubes go to the manual exception lane (docs/piles.md)
-TUBE_RADIUS = (0.035, 0.04, 0.07)
+# >= 0.3) from R = 34 mm, so thinner tubes go to the manual exception lane; fatter and longer ones are
+# beyond a smalls cell whose tote holds fifty (docs/piles.md)
+TUBE_RADIUS = (0.035, 0.038, 0.05)
+TUBE_LENGTH, ROLL_LENGTH = (0.15, 0.25), (0.08, 0.14)  # m: (shortest, longest) mailing tube and roll
 
 
 def _cylindrical(rng: np.random.Generator) -> trimesh.Trimesh:
     radius = float(rng.triangular(*TUBE_RADIUS))  # most tubes are thin; fat rolls are rare
     if rng.random() < 0.6:  # mailing tube: long and thin
-        length = float(rng.uniform(max(0.15, 4 * radius), 0.35))  # 35 cm at most: lies flat in the tote
+        length = float(rng.uniform(max(TUBE_LENGTH[0], 4 * radius), TUBE_LENGTH[1]))
     else:  # roll: short and fat
-        length = float(rng.uniform(max(0.08, 1.2 * radius), 0.20))
+        length = float(rng.uniform(max(ROLL_LENGTH[0], 1.2 * radius), ROLL_LENGTH[1]))
     mesh = trimesh.creation.cylinder(radius=radius, height=length, sections=48)
     # Lay the axis along body x so the flat-side-down pose is the natural one (z is the short side).
     mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
