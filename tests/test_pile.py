@@ -192,6 +192,22 @@ def test_a_30_parcel_stacked_request_keeps_at_least_28(sim, library, seed):
     assert scene.bin.contains(scene.world_coms()).all()
 
 
+def test_fifty_train_parcels_of_any_cluster_ask_less_than_a_stacked_tote_keeps(library):
+    """The parcels are sized for the tote (docs/piles.md): fifty of any cluster ask on average less of it than the
+    fill a stacked tote keeps 95% of."""
+    for object_set in OBJECT_SETS:
+        hulls = [asset.mesh.convex_hull.volume for asset in library.assets("train", object_set)]
+        assert 50 * np.mean(hulls) / BinSpec().volume < STACKED_FILL_CAPACITY, object_set
+
+
+@pytest.mark.parametrize("object_set", ["rectangular", "cylindrical"])
+def test_fifty_cartons_or_tubes_keep_95_percent(sim, library, object_set):
+    """The clusters with the largest parcels: fifty asked, at least 95% kept on average over three piles."""
+    config = PileConfig(num_parcels=50, layout="stacked", object_set=object_set)
+    kept = [len(build_pile(sim, config, seed, library).parcels) for seed in range(3)]
+    assert np.mean(kept) >= 0.95 * 50, kept
+
+
 @pytest.mark.parametrize("object_set", OBJECT_SETS)
 def test_scattered_places_every_parcel_up_to_the_capacity(sim, library, object_set):
     for seed in range(2):
