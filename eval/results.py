@@ -12,9 +12,10 @@ their own), one benchmark script each); a finished part writes its JSON under
 ``--work`` atomically, and a re-run skips every part whose JSON exists, so an interrupted run redoes only
 what was unfinished. ``--force PREFIX`` redoes the parts whose names start with it.
 
-``--restore RESULTS.json`` seeds the unfinished parts that do not depend on the pick cell (the test data, AP,
+``--restore RESULTS.json`` seeds the unfinished parts that do not run the pick cell (the test data, AP,
 the paper-compatible rows, the ablations) from an earlier report's JSON, so that a change to the cell re-runs
-only the clearance; the report names every restored part and where it came from.
+only the clearance; the report names every restored part, where it came from, and whether its rows read this
+report's test split (a change to the parcels generates the split anew: ``--force data/test ...``).
 
     python -m eval.results                       # everything, 2 local workers
     python -m eval.results --backend ray --workers 32 --ray-address auto
@@ -259,10 +260,15 @@ RESTORABLE = ("data/test", "ap/", "paper_compat", "ablations")
 RESTORE_MUST_MATCH = ("test_data", "ap_scenes", "ap_qualities", "ablation_steps", "ablation_seeds")
 
 
+def report_split_sha(report: dict[str, Any]) -> str | None:
+    """The manifest hash of the test split a report's AP was measured on (None where the report predates it)."""
+    return (report.get("test_split") or {}).get("manifest_sha256")
+
+
 def _restored_value(name: str, source: dict[str, Any]) -> tuple[bool, Any]:
     """(found, the part's value) rebuilt from a report JSON; ``found`` is False where the source lacks it."""
-    if name == "data/test":
-        return True, {"argv": None, "manifest_sha256": None}  # not generated here: the AP parts were measured on it
+    if name == "data/test":  # not generated here: the AP parts were measured on the source's split
+        return True, {"argv": None, "manifest_sha256": report_split_sha(source)}
     if name.startswith("ap/"):
         entry = source["policies"].get(name.split("/", 1)[1])
         return entry is not None, None if entry is None else {**entry, "clearance": None, "clearance_error": None}
@@ -292,7 +298,7 @@ def restore_parts(parts: Sequence[Part], source_path: str, config: ReportConfig,
 
     Each restored part's JSON says where it came from (``restored_from``), so the report can say so too."""
     source = load_restore_source(source_path, config)
-    origin = {"path": source_path, "generated": source.get("generated")}
+    origin = {"path": source_path, "generated": source.get("generated"), "test_split_sha256": report_split_sha(source)}
     restored = []
     for part in parts:
         if part.output.is_file() or not part.name.startswith(RESTORABLE):
@@ -357,7 +363,9 @@ def assemble(cfg: ResultsConfig) -> dict[str, Any]:
                 *(_value(work / "ablations" / f"{part}.json") or [] for part in orchestration.ABLATION_PARTS)),
             "paper_compat": [] if r.skip_paper_compat else (_value(work / "paper_compat.json") or []),
             "label_physics": orchestration.read_label_physics(r.label_physics),
-            "provenance": orchestration.provenance(r), "restored": restored_parts(plan(cfg))}
+            "provenance": orchestration.provenance(r), "restored": restored_parts(plan(cfg)),
+            # which test split the AP rows read, so a later --restore can tell whether its split is the same
+            "test_split": {"manifest_sha256": (_value(work / "data" / "test.json") or {}).get("manifest_sha256")}}
 
 
 GENERATED_BEGIN = "<!-- make results: generated tables begin (edits between these markers are overwritten) -->"

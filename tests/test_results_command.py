@@ -216,9 +216,12 @@ def test_training_generates_each_variants_own_split_once_before_the_runs_that_re
     assert results.TRAIN_DATA_ARGS == TRAIN_MORE_POINTS_BASELINE.generate_args()
 
 
-def _fake_everything(monkeypatch, tmp_path: Path, calls: Counter) -> None:
+def _fake_everything(monkeypatch, tmp_path: Path, calls: Counter, split: dict[str, str] | None = None) -> None:
+    """Every part faked; the test split generated has ``split['sha']`` as its manifest hash (read when it runs)."""
+    split = {"sha": "split-1"} if split is None else split
     monkeypatch.setattr(results, "REPO", tmp_path)
-    monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg, fresh=False: lambda: calls.update(["data"]) or {})
+    monkeypatch.setattr(results, "_generate", lambda out, n, args, cfg, fresh=False: lambda: calls.update(["data"])
+                        or {"manifest_sha256": split["sha"]})
     monkeypatch.setattr(orchestration, "evaluate_policy_ap", lambda name, cfg: calls.update([f"ap/{name}"])
                         or _fake_ap(name, cfg))
     def ablations(cfg, main_ap, part=None):  # one step-count row reads the main checkpoint, one variant does not
@@ -250,7 +253,8 @@ def test_restore_reruns_only_the_clearance_and_the_report_names_what_it_restored
     dump = json.loads(Path(out["paths"]["json"]).read_text())
     restored = ["data/test", "ap/diffusion", "ap/cao", "paper_compat", "ablations/main", "ablations/trained"]
     assert dump["restored"]["sources"] == [{"path": str(source), "generated": earlier["generated"],
-                                            "parts": restored}]
+                                            "test_split_sha256": "split-1", "parts": restored}]
+    assert dump["test_split"] == earlier["test_split"] == {"manifest_sha256": "split-1"}  # the restored split's
     for name in ("diffusion", "cao"):  # the AP is the earlier one, the clearance this run's
         assert dump["policies"][name]["ap"] == earlier["policies"][name]["ap"]
         assert dump["policies"][name]["clearance"]["overall"] == earlier["policies"][name]["clearance"]["overall"]
@@ -280,6 +284,32 @@ def test_restore_reruns_only_the_clearance_and_the_report_names_what_it_restored
     dump = json.loads(Path(out["paths"]["json"]).read_text())
     assert [row["name"] for row in dump["ablations"]] == ["infer5", "reference"]
     assert dump["ablations"][1] == earlier["ablations"][1]
+
+
+def test_restored_rows_on_another_test_split_are_named_as_such(tmp_path: Path, monkeypatch):
+    """The parcels changed, so the test split is generated anew while the trained ablation rows are restored: the
+    page says those rows read the earlier split; restored onto the same split, it says they read this one."""
+    calls: Counter = Counter()
+    split = {"sha": "split-before"}
+    _fake_everything(monkeypatch, tmp_path, calls, split)
+    cfg = _config(tmp_path, tmp_path / "no_benchmarks")
+    source = tmp_path / "earlier.json"
+    source.write_text(Path(results.regenerate(cfg, log=lambda _: None)["paths"]["json"]).read_text())
+
+    def rerun(work: str, sha: str, force: tuple[str, ...]) -> tuple[dict, str]:
+        split["sha"] = sha
+        out = results.regenerate(results.ResultsConfig(report=cfg.report, work=str(tmp_path / work),
+                                                       bench_dir=cfg.bench_dir, restore=str(source), force=force),
+                                 log=lambda _: None)
+        return json.loads(Path(out["paths"]["json"]).read_text()), Path(out["paths"]["markdown"]).read_text()
+
+    dump, md = rerun("resized", "split-after", ("data/test", "ap", "paper_compat", "ablations/main", "clearance"))
+    assert dump["test_split"] == {"manifest_sha256": "split-after"}
+    assert dump["restored"]["sources"][0]["parts"] == ["ablations/trained"]
+    assert ("**They were measured on that report's test split (manifest split-before), not on this report's** "
+            "(manifest split-after") in md
+    dump, md = rerun("same", "split-before", ("data/test", "ap", "paper_compat", "ablations/main", "clearance"))
+    assert "They were measured on this report's test split (the same manifest)." in md and "not on this" not in md
 
 
 def test_restore_refuses_a_report_measured_on_other_test_scenes_or_not_a_report(tmp_path: Path, monkeypatch, capsys):

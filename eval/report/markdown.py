@@ -82,12 +82,29 @@ def clearance_line(report: dict[str, Any]) -> str:
             "(the same piles for every method).")
 
 
+def _restored_split(src: dict[str, Any], ours: str | None) -> str:
+    """Whether a restored source's AP rows read this report's test split: the restored split itself, the same
+    manifest, or another (the asset library or the labels may have changed in between)."""
+    if "data/test" in src["parts"] or not any(p.startswith(("ap/", "paper_compat", "ablations")) for p in src["parts"]):
+        return ""
+    theirs = src.get("test_split_sha256")
+    if theirs is not None and theirs == ours:
+        return " They were measured on this report's test split (the same manifest)."
+    was = f"manifest {theirs[:12]}" if theirs else "which that report did not record"
+    return (f" **They were measured on that report's test split ({was}), not on this report's** (manifest "
+            f"{(ours or 'unknown')[:12]}, generated for it): where the parcels or the labels changed in between, "
+            "those rows do not compare with this report's own.")
+
+
 def restored_lines(report: dict[str, Any]) -> list[str]:
-    """Which numbers ``make results --restore`` took from an earlier report instead of running them."""
+    """Which numbers ``make results --restore`` took from an earlier report instead of running them, and on which
+    test split those were measured."""
     sources = (report.get("restored") or {}).get("sources") or []
+    ours = (report.get("test_split") or {}).get("manifest_sha256")
     lines = [f"**Restored, not re-run:** {', '.join(f'`{n}`' for n in src['parts'])}, from `{src['path']}` "
-             f"(generated {src['generated']}). These parts do not depend on the pick cell; their numbers and costs "
-             "are that run's, and every other number here was run for this report." for src in sources]
+             f"(generated {src['generated']}). These parts do not run the pick cell; their numbers and costs are that "
+             f"run's, and every other number here was run for this report.{_restored_split(src, ours)}"
+             for src in sources]
     return lines + [""] if lines else []
 
 
