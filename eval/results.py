@@ -260,15 +260,10 @@ RESTORABLE = ("data/test", "ap/", "paper_compat", "ablations")
 RESTORE_MUST_MATCH = ("test_data", "ap_scenes", "ap_qualities", "ablation_steps", "ablation_seeds")
 
 
-def report_split_sha(report: dict[str, Any]) -> str | None:
-    """The manifest hash of the test split a report's AP was measured on (None where the report predates it)."""
-    return (report.get("test_split") or {}).get("manifest_sha256")
-
-
 def _restored_value(name: str, source: dict[str, Any]) -> tuple[bool, Any]:
     """(found, the part's value) rebuilt from a report JSON; ``found`` is False where the source lacks it."""
     if name == "data/test":  # not generated here: the AP parts were measured on the source's split
-        return True, {"argv": None, "manifest_sha256": report_split_sha(source)}
+        return True, {"argv": None, "manifest_sha256": orchestration.report_split_sha(source)}
     if name.startswith("ap/"):
         entry = source["policies"].get(name.split("/", 1)[1])
         return entry is not None, None if entry is None else {**entry, "clearance": None, "clearance_error": None}
@@ -298,7 +293,8 @@ def restore_parts(parts: Sequence[Part], source_path: str, config: ReportConfig,
 
     Each restored part's JSON says where it came from (``restored_from``), so the report can say so too."""
     source = load_restore_source(source_path, config)
-    origin = {"path": source_path, "generated": source.get("generated"), "test_split_sha256": report_split_sha(source)}
+    origin = {"path": source_path, "generated": source.get("generated"),
+              "test_split_sha256": orchestration.report_split_sha(source)}
     restored = []
     for part in parts:
         if part.output.is_file() or not part.name.startswith(RESTORABLE):

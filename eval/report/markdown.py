@@ -19,6 +19,7 @@ from eval.report.config import (
     QUALITY_TITLES,
 )
 from eval.report.figures import plot_clearance, plot_failures, plot_precision_at_k
+from eval.report.orchestration import report_split_sha
 from eval.report.seed_runs import MIN_SEEDS
 from eval.report.splits import MORE_POINTS, MORE_POINTS_TRAIN_SCENES
 from eval.report.tables import (
@@ -83,9 +84,10 @@ def clearance_line(report: dict[str, Any]) -> str:
 
 
 def _restored_split(src: dict[str, Any], ours: str | None) -> str:
-    """Whether a restored source's AP rows read this report's test split: the restored split itself, the same
-    manifest, or another (the asset library or the labels may have changed in between)."""
-    if "data/test" in src["parts"] or not any(p.startswith(("ap/", "paper_compat", "ablations")) for p in src["parts"]):
+    """Whether a restored source's rows read this report's test split: the restored split itself, the same
+    manifest, or another (the asset library or the labels may have changed in between). Every restorable part
+    but the split itself reads the split."""
+    if "data/test" in src["parts"]:
         return ""
     theirs = src.get("test_split_sha256")
     if theirs is not None and theirs == ours:
@@ -100,7 +102,7 @@ def restored_lines(report: dict[str, Any]) -> list[str]:
     """Which numbers ``make results --restore`` took from an earlier report instead of running them, and on which
     test split those were measured."""
     sources = (report.get("restored") or {}).get("sources") or []
-    ours = (report.get("test_split") or {}).get("manifest_sha256")
+    ours = report_split_sha(report)
     lines = [f"**Restored, not re-run:** {', '.join(f'`{n}`' for n in src['parts'])}, from `{src['path']}` "
              f"(generated {src['generated']}). These parts do not run the pick cell; their numbers and costs are that "
              f"run's, and every other number here was run for this report.{_restored_split(src, ours)}"
