@@ -77,6 +77,22 @@ def training_provenance(command: str, seed: int, data_dir: str | os.PathLike | N
             "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 
+PART_FIELDS: tuple[str, ...] = ("git_commit", "command", "wall_time_s", "recorded_at")
+
+
+def chain_parts(record: dict[str, Any], earlier: Any) -> dict[str, Any]:
+    """A resumed run's record: ``earlier`` is the provenance its start checkpoint carried (None for a fresh run).
+    Each invocation's commit, command and wall time is kept in ``parts``, and ``wall_time_s`` is their sum, so a
+    run stopped by ``--max-minutes`` and resumed still says what all of it cost."""
+    if not isinstance(earlier, dict):
+        return record
+    parts = earlier.get("parts") or [{k: earlier.get(k, NOT_RECORDED) for k in PART_FIELDS}]
+    chained = dict(record, parts=[*parts, {k: record.get(k, NOT_RECORDED) for k in PART_FIELDS}])
+    times = [p["wall_time_s"] for p in chained["parts"]]
+    chained["wall_time_s"] = sum(times) if all(isinstance(t, (int, float)) for t in times) else NOT_RECORDED
+    return chained
+
+
 def _embedded(path: Path) -> dict[str, Any] | None:
     """The provenance stored in the checkpoint itself (torch payload metadata, or the JSON log beside it)."""
     if path.suffix == ".pt":

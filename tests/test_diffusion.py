@@ -626,6 +626,11 @@ def test_train_cli_runs_and_resumes_deterministically(tmp_path):
     assert a["step"] == b["step"] == 4 and (tmp_path / "a" / "best.pt").is_file()
     for k, v in a["model"].items():
         assert torch.equal(v, b["model"][k]), k
+    # the resumed run's record keeps both invocations, and its wall time is theirs together
+    parts = b["extra"]["provenance"]["parts"]
+    assert "parts" not in a["extra"]["provenance"] and len(parts) == 2 and "--resume" in parts[1]["command"]
+    assert "--resume" not in parts[0]["command"]
+    assert b["extra"]["provenance"]["wall_time_s"] == pytest.approx(sum(p["wall_time_s"] for p in parts))
     policy = DiffusionSuctionPolicy(checkpoint=tmp_path / "a" / "best.pt")
     assert len(policy.predict(obs_from(5, 256), top_k=3)) > 0
 

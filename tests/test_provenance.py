@@ -12,6 +12,7 @@ from policies.provenance import (
     NO_DATASET,
     NOT_RECORDED,
     SIDECAR_SUFFIX,
+    chain_parts,
     checkpoint_provenance,
     command_line,
     manifest_sha256,
@@ -115,3 +116,16 @@ def test_the_commit_the_sender_names_wins_over_what_git_finds(tmp_path: Path, mo
     assert git_commit() != "0acb31c"  # this checkout's HEAD (or NOT_RECORDED where the tree has no .git)
     monkeypatch.setenv(COMMIT_ENV, "0acb31c")  # a copy sent elsewhere, whose .git may hold an older HEAD
     assert git_commit(tmp_path) == git_commit() == "0acb31c"
+
+
+def test_a_resumed_runs_record_sums_its_parts_and_a_fresh_one_is_unchanged():
+    first = {"git_commit": "a" * 40, "command": "python -m x --max-minutes 30", "seed": 0, "wall_time_s": 1800.0,
+             "recorded_at": "t0"}
+    second = dict(first, command="python -m x --resume", wall_time_s=600.0, recorded_at="t1")
+    assert chain_parts(second, None) is second
+    chained = chain_parts(second, first)
+    assert chained["wall_time_s"] == 2400.0 and [p["command"] for p in chained["parts"]] == [first["command"],
+                                                                                          second["command"]]
+    third = chain_parts(dict(second, wall_time_s=5.0), chained)  # a second resume extends the chain
+    assert third["wall_time_s"] == 2405.0 and len(third["parts"]) == 3
+    assert chain_parts(second, dict(first, wall_time_s=NOT_RECORDED))["wall_time_s"] == NOT_RECORDED

@@ -38,7 +38,7 @@ from parcelpick_env.suction.label_sets import LABEL_SETS
 from policies.diffusion.checkpoint import load_checkpoint, load_model, save_checkpoint
 from policies.diffusion.config import TIMESTEP_SPACINGS, DiffusionConfig
 from policies.diffusion.metrics import topk_precision
-from policies.provenance import command_line, training_provenance
+from policies.provenance import chain_parts, command_line, training_provenance
 from policies.diffusion.model import DiffusionSuction, build_model
 from policies.diffusion.neighbourhood import NeighbourhoodTransform
 
@@ -219,7 +219,7 @@ def lr_at(step: int, total: int, base: float) -> float:
 
 
 def train(args: argparse.Namespace) -> dict[str, float]:
-    started = time.perf_counter()  # this invocation's wall time (a resumed run records its own part)
+    started = time.perf_counter()  # this invocation's wall time (a resumed run adds it to its earlier parts')
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -231,6 +231,7 @@ def train(args: argparse.Namespace) -> dict[str, float]:
     start, best = 0, -1.0
     last = args.out / "last.pt"
     init: dict[str, Any] | None = None  # the warm start's record, kept in every checkpoint of the run
+    earlier: dict[str, Any] | None = None  # a resumed run's provenance so far (chain_parts)
     if args.resume:
         payload = load_checkpoint(last, map_location=device)
         if payload["config"] != config:
@@ -239,6 +240,7 @@ def train(args: argparse.Namespace) -> dict[str, float]:
         optimizer.load_state_dict(payload["optimizer"])
         start, best = payload["step"], payload["extra"].get("best_ap_proxy", -1.0)
         init = payload["extra"].get("init")
+        earlier = payload["extra"].get("provenance")
     elif args.init is not None:
         init = warm_start(model, args.init, config, device)
     train_set, val_set = make_datasets(args, config)
@@ -290,8 +292,8 @@ def train(args: argparse.Namespace) -> dict[str, float]:
                 is_best = metrics["val_ap_proxy"] > best
                 best = max(best, metrics["val_ap_proxy"])
                 extra = {"best_ap_proxy": best, "metrics": metrics,
-                         "provenance": training_provenance(getattr(args, "command", "not recorded"), args.seed,
-                                                           args.data, started)}
+                         "provenance": chain_parts(training_provenance(getattr(args, "command", "not recorded"),
+                                                                       args.seed, args.data, started), earlier)}
                 if init is not None:
                     extra["init"] = init
                 save_checkpoint(last, model, optimizer, step, extra)
