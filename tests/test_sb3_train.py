@@ -17,6 +17,7 @@ def test_training_command_writes_a_model_the_policy_loads_and_a_reward_log(tmp_p
     main(["--timesteps", "16", "--n-steps", "8", "--parcels", "1", "--seed", "0", "--out", str(out)])
     log = json.loads(out.with_suffix(".json").read_text())
     assert log["timesteps"] == 16 and sum(log["episode_lengths"]) <= 16
+    assert log["command_args"]["out"] == str(out)  # outside the repository: the path as given
     assert all(0 <= r <= 1 for r in log["episode_rewards"])  # one parcel: at most one delivery per episode
     assert not zipfile.is_zipfile(out)  # data-only safetensors, never SB3's pickled zip
     with safe_open(str(out), framework="pt") as handle:
@@ -34,6 +35,7 @@ def test_shipped_model_is_small_and_has_its_training_log():
     assert DEFAULT_MODEL.stat().st_size < 1_000_000
     log = json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())
     assert log["command_args"]["seed"] == 0 and log["timesteps"] >= 2000
+    assert log["command_args"]["out"] == "policies/sb3/ppo_pixel.safetensors"  # inside it: the repository's path
     policy = SB3Policy()  # the shipped model loads through the data-only path and gives in-range pixels
     actions, _ = policy.model.predict(np.random.default_rng(0).uniform(0, 1, (16, 12 * 16)).astype(np.float32),
                                       deterministic=True)
