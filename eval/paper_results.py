@@ -22,7 +22,8 @@ TABLE_V: dict[tuple[str, str], tuple[float, float]] = {
 
 METHOD_LABELS: dict[str, str] = {
     "oracle": "Oracle (privileged ceiling)",
-    "diffusion": "Diffusion-Suction", "diffusion_vote": "Diffusion-Suction + centre votes", "cao": "Cao et al.", "normal_std": "Normal-STD",
+    "diffusion": "Diffusion-Suction", "diffusion_vote": "Diffusion-Suction + centre votes",
+    "diffusion_hold": "Diffusion-Suction + hold check", "cao": "Cao et al.", "normal_std": "Normal-STD",
     "dexnet": "Dex-Net 3.0", "random": "Random", "sb3": "PPO (SB3)",
 }
 

@@ -389,12 +389,14 @@ def test_failure_anatomy_table_figure_and_provenance_are_in_the_report(report, t
 
     table = failure_table(report["policies"], ("rectangular",), ("scattered",))
     assert "| Diffusion-Suction | collision: free-space | 1 | 1 |" in table
-    report = {**report, "provenance": shipped_provenance()}
+    provenance = shipped_provenance()
+    report = {**report, "provenance": provenance}
     paths = write_report(report, tmp_path / "RESULTS.md", tmp_path / "figs")
     md = paths["markdown"].read_text()
     assert paths["failures"].read_bytes()[:8] == PNG_MAGIC and "](figs/failures.png)" in md
     assert "### Failure anatomy" in md and "collision: free-space (tool_rod) × 1" in md
-    assert "## Checkpoint provenance" in md and "not recorded" in md
+    assert "## Checkpoint provenance" in md
+    assert all(record["git_commit"] in md for record in provenance.values())  # every shipped file's commit
     assert "`python -m policies.cao.train --data data/baselines_train" in md
     assert "## Paired comparisons with Diffusion-Suction" in md and "Diffusion-Suction − Cao et al." in md
 
