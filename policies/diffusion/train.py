@@ -219,7 +219,7 @@ def lr_at(step: int, total: int, base: float) -> float:
 
 
 def train(args: argparse.Namespace) -> dict[str, float]:
-    started = time.perf_counter()  # this invocation's wall time (a resumed run adds it to its earlier parts')
+    started = time.perf_counter()  # this invocation's wall time (chain_parts adds a resumed run's earlier parts)
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():

@@ -140,7 +140,8 @@ def main(argv: list[str] | None = None) -> None:
     last = rewards[-tenth:].mean() if len(rewards) else float("nan")
     # the shipped log names its model inside the repository, not where this checkout happens to live
     shown = out.resolve().relative_to(REPO) if out.resolve().is_relative_to(REPO) else out
-    log = {"command_args": dict(vars(args), out=str(shown)), "timesteps": args.timesteps, "seconds": time.perf_counter() - started,
+    log = {"command_args": dict(vars(args), out=str(shown)), "timesteps": args.timesteps,
+           "seconds": time.perf_counter() - started,
            "provenance": training_provenance(command_line("policies.sb3.train", argv), args.seed, None, started),
            "episode_rewards": rewards.tolist(), "episode_lengths": [n for _, n in episodes],
            "first_tenth_mean_reward": first, "last_tenth_mean_reward": last}
