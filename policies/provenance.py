@@ -132,6 +132,13 @@ def checkpoint_provenance(path: str | os.PathLike) -> dict[str, Any]:
     return record
 
 
+def repo_path(path: str | os.PathLike, root: str | os.PathLike = REPO) -> str:
+    """``path`` as the repository names it (relative to ``root``) where it lies inside, else as given: a record
+    that names a shipped file must not name the checkout it was made in."""
+    full, base = Path(os.path.abspath(path)), Path(os.path.abspath(root))
+    return str(full.relative_to(base)) if full.is_relative_to(base) else str(path)
+
+
 def shipped_provenance(root: str | os.PathLike = REPO) -> dict[str, dict[str, Any]]:
     """``checkpoint_provenance`` of every shipped checkpoint that exists, by policy name."""
     out = {}
@@ -139,5 +146,5 @@ def shipped_provenance(root: str | os.PathLike = REPO) -> dict[str, dict[str, An
         path = next((Path(root) / c for c in candidates if (Path(root) / c).is_file()), None)
         if path is not None:
             out[name] = checkpoint_provenance(path)
-            out[name]["checkpoint"] = str(path.relative_to(root)) if path.is_relative_to(root) else str(path)
+            out[name]["checkpoint"] = repo_path(path, root)
     return out

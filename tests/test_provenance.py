@@ -16,6 +16,7 @@ from policies.provenance import (
     checkpoint_provenance,
     command_line,
     manifest_sha256,
+    repo_path,
     shipped_provenance,
     training_provenance,
 )
@@ -129,3 +130,11 @@ def test_a_resumed_runs_record_sums_its_parts_and_a_fresh_one_is_unchanged():
     third = chain_parts(dict(second, wall_time_s=5.0), chained)  # a second resume extends the chain
     assert third["wall_time_s"] == 2405.0 and len(third["parts"]) == 3
     assert chain_parts(second, dict(first, wall_time_s=NOT_RECORDED))["wall_time_s"] == NOT_RECORDED
+
+
+def test_a_path_inside_the_repository_is_named_from_its_root_and_one_outside_as_given(tmp_path: Path):
+    from policies.provenance import REPO
+
+    assert repo_path(REPO / "policies" / "sb3" / "ppo_pixel.safetensors") == "policies/sb3/ppo_pixel.safetensors"
+    assert repo_path(tmp_path / "model.pt") == str(tmp_path / "model.pt")
+    assert repo_path(tmp_path / "a" / "b.pt", root=tmp_path) == "a/b.pt"

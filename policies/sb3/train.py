@@ -29,7 +29,7 @@ import parcelpick_env  # noqa: F401  (registers ParcelPick-v0)
 from parcelpick_env.camera.config import CameraConfig
 from parcelpick_env.cli import check_output_path, run_cli
 from parcelpick_env.parallel import limit_worker_threads
-from policies.provenance import REPO, command_line, training_provenance
+from policies.provenance import command_line, repo_path, training_provenance
 from policies.sb3.features import DEFAULT_GRID, depth_features
 from policies.sb3.model_io import save_model
 from policies.sb3.policy import DEFAULT_MODEL
@@ -138,9 +138,7 @@ def main(argv: list[str] | None = None) -> None:
     tenth = max(1, len(rewards) // 10)
     first = rewards[:tenth].mean() if len(rewards) else float("nan")
     last = rewards[-tenth:].mean() if len(rewards) else float("nan")
-    # the shipped log names its model inside the repository, not where this checkout happens to live
-    shown = out.resolve().relative_to(REPO) if out.resolve().is_relative_to(REPO) else out
-    log = {"command_args": dict(vars(args), out=str(shown)), "timesteps": args.timesteps,
+    log = {"command_args": dict(vars(args), out=repo_path(out)), "timesteps": args.timesteps,
            "seconds": time.perf_counter() - started,
            "provenance": training_provenance(command_line("policies.sb3.train", argv), args.seed, None, started),
            "episode_rewards": rewards.tolist(), "episode_lengths": [n for _, n in episodes],
