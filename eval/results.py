@@ -46,7 +46,7 @@ from eval.clearance import CHECK_SETTINGS, LAYOUTS, OBJECT_SETS, EpisodeResult, 
 from eval.report import orchestration  # noqa: E402
 from eval.report.config import DEFAULT_POLICIES, DIFFUSION, PAPER_COMPAT_POLICIES, ReportConfig  # noqa: E402
 from eval.report.markdown import write_report  # noqa: E402
-from eval.report.splits import TEST_DATA_ARGS, TRAIN_DATA_ARGS, DataSplit  # noqa: E402
+from eval.report.splits import TEST_DATA_ARGS, TRAIN_DATA_ARGS, DataSplit, report_split_sha  # noqa: E402
 from eval.report.variants import TRAINED_VARIANTS  # noqa: E402
 from parcelpick_env.parallel import BACKENDS  # noqa: E402
 
@@ -263,7 +263,7 @@ RESTORE_MUST_MATCH = ("test_data", "ap_scenes", "ap_qualities", "ablation_steps"
 def _restored_value(name: str, source: dict[str, Any]) -> tuple[bool, Any]:
     """(found, the part's value) rebuilt from a report JSON; ``found`` is False where the source lacks it."""
     if name == "data/test":  # not generated here: the AP parts were measured on the source's split
-        return True, {"argv": None, "manifest_sha256": orchestration.report_split_sha(source)}
+        return True, {"argv": None, "manifest_sha256": report_split_sha(source)}
     if name.startswith("ap/"):
         entry = source["policies"].get(name.split("/", 1)[1])
         return entry is not None, None if entry is None else {**entry, "clearance": None, "clearance_error": None}
@@ -294,7 +294,7 @@ def restore_parts(parts: Sequence[Part], source_path: str, config: ReportConfig,
     Each restored part's JSON says where it came from (``restored_from``), so the report can say so too."""
     source = load_restore_source(source_path, config)
     origin = {"path": source_path, "generated": source.get("generated"),
-              "test_split_sha256": orchestration.report_split_sha(source)}
+              "test_split_sha256": report_split_sha(source)}
     restored = []
     for part in parts:
         if part.output.is_file() or not part.name.startswith(RESTORABLE):

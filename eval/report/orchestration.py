@@ -422,11 +422,6 @@ def load_report_json(path: str, flag: str) -> dict[str, Any]:
     return source
 
 
-def report_split_sha(report: dict[str, Any]) -> str | None:
-    """The manifest hash of the test split a report's AP was measured on (None where the report predates it)."""
-    return (report.get("test_split") or {}).get("manifest_sha256")
-
-
 def load_clearance_source(path: str) -> dict[str, Any]:
     """The report whose clearance ``--clearance-from`` reuses (``load_report_json``)."""
     return load_report_json(path, "--clearance-from")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 # The held-out test split every published number uses: 64 scenes (>= 50, so a 3-point paired AP gap resolves;
 # per-scene AP differences spread by about 10 points) of 10 to 50 parcels, stacked and scattered ('random' draws
@@ -60,3 +61,8 @@ MORE_POINTS_TRAIN_SCENES = 400
 TEST_MORE_POINTS = DataSplit("data/test8k", 64, MORE_POINTS)
 TRAIN_MORE_POINTS = DataSplit("data/train8k", MORE_POINTS_TRAIN_SCENES, MORE_POINTS, TRAIN_DATA_ARGS)
 TRAIN_MORE_POINTS_BASELINE = DataSplit("data/train4k400", MORE_POINTS_TRAIN_SCENES, 4096, TRAIN_DATA_ARGS)
+
+
+def report_split_sha(report: dict[str, Any]) -> str | None:
+    """The manifest hash of the test split a report's AP was measured on (None where the report predates it)."""
+    return (report.get("test_split") or {}).get("manifest_sha256")
