@@ -397,7 +397,7 @@ def test_failure_anatomy_table_figure_and_provenance_are_in_the_report(report, t
     assert "### Failure anatomy" in md and "collision: free-space (tool_rod) × 1" in md
     assert "## Checkpoint provenance" in md
     assert all(record["git_commit"] in md for record in provenance.values())  # every shipped file's commit
-    assert "`python -m policies.cao.train --data data/baselines_train" in md
+    assert "`python -m policies.cao.train --data data/train" in md
     assert "## Paired comparisons with Diffusion-Suction" in md and "Diffusion-Suction − Cao et al." in md
 
 
