@@ -224,7 +224,42 @@ def test_training_cli_runs_end_to_end(tiny_dataset, tmp_path, capsys):
                        "--quiet"])
     assert code == 0 and out.is_file()
     assert "trained on" in capsys.readouterr().out
+    assert torch.load(out, weights_only=True)["config"]["colour"] is True
+    assert train_main(["--data", str(tiny_dataset), "--out", str(out), "--epochs", "1", "--input-height", str(H),
+                       "--input-width", str(W), "--widths", "4", "8", "--threads", "1", "--quiet", "--no-colour"]) == 0
+    assert torch.load(out, weights_only=True)["config"]["colour"] is False
     assert train_main(["--data", str(tmp_path / "nowhere"), "--out", str(out)]) == 2
+
+
+def test_depth_only_network_reads_relief_alone_and_ignores_colour(tiny_dataset, tmp_path):
+    """The ablation without colour: one input plane, the relief one, so recolouring the scene changes nothing."""
+    from policies.cao.network import prepare_input
+
+    record = synthetic_record(3)
+    depth_only = dataclasses.replace(SMALL, colour=False)
+    assert depth_only.input_channels == 1 and SMALL.input_channels == 4
+    both, relief = prepare_input(record["rgb"], record["depth"], SMALL), prepare_input(record["rgb"], record["depth"],
+                                                                                        depth_only)
+    assert both.shape == (4, H, W) and relief.shape == (1, H, W) and np.array_equal(relief[0], both[3])
+    assert CaoConfig.from_dict(depth_only.to_dict()) == depth_only
+    with pytest.raises(ValueError, match="colour"):
+        CaoConfig(colour="no")
+    out = tmp_path / "depth.pt"
+    train(tiny_dataset, out, dataclasses.replace(depth_only, epochs=1, widths=(4, 8)), seed=0, threads=1,
+          progress=False)
+    policy = CaoPolicy(checkpoint=out, threads=1)
+    assert policy.net.in_channels == 1
+    obs, info = observation(record)
+    recoloured = {**obs, "rgb": (255 - obs["rgb"]).astype(np.uint8)}
+    assert np.array_equal(policy.heatmaps(obs, info), policy.heatmaps(recoloured, info))
+    colour = CaoPolicy(checkpoint=train_colour(tiny_dataset, tmp_path), threads=1)
+    assert not np.array_equal(colour.heatmaps(obs, info), colour.heatmaps(recoloured, info))
+
+
+def train_colour(dataset, tmp_path):
+    out = tmp_path / "colour.pt"
+    train(dataset, out, dataclasses.replace(SMALL, epochs=1, widths=(4, 8)), seed=0, threads=1, progress=False)
+    return out
 
 
 def test_policy_returns_ranked_candidates_and_valid_action(trained):

@@ -30,12 +30,15 @@ class CaoConfig:
     pixels of a ``reference_width``-wide image, scaled to the observation's width so they cover the
     same patch of the scene at any resolution.
     ``depth_scale``: metres of relief per unit of the normalised depth channel.
+    ``colour``: False feeds the relief plane alone (an ablation: how much of the baseline's score comes from seeing
+    colour, which the point-cloud methods do not).
     """
 
     input_height: int = 120
     input_width: int = 160
     widths: tuple[int, ...] = (8, 16, 32, 64)
     depth_scale: float = 0.10
+    colour: bool = True
     seal_sigma_px: float = 2.0
     seal_channels: tuple[str, ...] = ("seal",)
     centre_sigma_scale: float = 0.5
@@ -71,6 +74,12 @@ class CaoConfig:
         require(self.box_filter % 2 == 1, owner, f"box_filter must be odd, got {self.box_filter}")
         require(self.weight_decay >= 0, owner, f"weight_decay must be >= 0, got {self.weight_decay}")
         require(0.0 <= self.val_fraction < 1.0, owner, f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        require(isinstance(self.colour, bool), owner, f"colour must be True or False, got {self.colour!r}")
+
+    @property
+    def input_channels(self) -> int:
+        """The network's input planes: RGB and relief, or relief alone."""
+        return 4 if self.colour else 1
 
     @property
     def seal_label_columns(self) -> list[int]:

@@ -19,21 +19,24 @@ MAX_RELIEF = 5.0  # clamp of the normalised depth channel, in units of depth_sca
 
 
 def prepare_input(rgb: np.ndarray, depth: np.ndarray, config: CaoConfig) -> np.ndarray:
-    """(4, h, w) float32 network input from an (H, W, 3) uint8 image and (H, W) metric depth.
+    """(``config.input_channels``, h, w) float32 network input from an (H, W, 3) uint8 image and (H, W) metric
+    depth: the normalised RGB planes (unless ``config.colour`` is False), then the relief plane.
 
     Depth is made relative to the scene's median depth so the net sees relief, not camera height;
     holes (0) stay 0, i.e. "at the median". Colour is resized with anti-aliasing, depth by nearest pixel.
     """
     out_hw = (config.input_height, config.input_width)
-    colour = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float() / 255.0
-    if colour.shape[-2:] != out_hw:
-        colour = F.interpolate(colour, size=out_hw, mode="bilinear", antialias=True, align_corners=False)
-    colour = (colour[0].numpy() - RGB_MEAN) / RGB_STD
     d = nearest_resize(np.asarray(depth, dtype=np.float32), out_hw)
     valid = d > 0
     relief = np.zeros(out_hw, dtype=np.float32)
     if valid.any():
         relief[valid] = np.clip((d[valid] - np.median(d[valid])) / config.depth_scale, -MAX_RELIEF, MAX_RELIEF)
+    if not config.colour:
+        return relief[None]
+    colour = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float() / 255.0
+    if colour.shape[-2:] != out_hw:
+        colour = F.interpolate(colour, size=out_hw, mode="bilinear", antialias=True, align_corners=False)
+    colour = (colour[0].numpy() - RGB_MEAN) / RGB_STD
     return np.concatenate([colour, relief[None]]).astype(np.float32)
 
 
@@ -46,14 +49,14 @@ class _DoubleConv(nn.Sequential):
 
 
 class CaoNet(nn.Module):
-    """U-Net: ``len(widths)`` levels, 4 input channels, 2 output logits [seal, centre]."""
+    """U-Net: ``len(widths)`` levels, ``config.input_channels`` inputs (RGB-D or depth), 2 output logits [seal, centre]."""
 
-    in_channels = 4
     out_channels = 2
 
     def __init__(self, config: CaoConfig) -> None:
         super().__init__()
         widths = list(config.widths)
+        self.in_channels = config.input_channels
         self.encoders = nn.ModuleList()
         cin = self.in_channels
         for w in widths:
@@ -67,7 +70,7 @@ class CaoNet(nn.Module):
         self.head = nn.Conv2d(widths[0], self.out_channels, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 4, h, w) -> (B, 2, h, w) logits; h and w must divide by 2**(levels - 1)."""
+        """(B, C, h, w) -> (B, 2, h, w) logits; h and w must divide by 2**(levels - 1)."""
         skips = []
         for level, encoder in enumerate(self.encoders):
             x = encoder(x if level == 0 else F.max_pool2d(x, 2))

@@ -34,12 +34,12 @@ from policies.provenance import command_line, training_provenance
 
 def load_tensors(data_dir: str | os.PathLike, config: CaoConfig, max_scenes: int | None = None,
                  progress: bool = True) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
-    """(S, 4, h, w) inputs and (S, 2, h, w) [seal, centre] targets for every stored scene."""
+    """(S, C, h, w) inputs (``config.input_channels``) and (S, 2, h, w) [seal, centre] targets for every stored scene."""
     store = open_store(data_dir)  # a dataset directory or a SuctionNet root
     count = len(store) if max_scenes is None else min(len(store), max_scenes)
     if count == 0:
         raise ValueError(f"dataset {data_dir} holds no scenes")
-    inputs = np.empty((count, 4, config.input_height, config.input_width), dtype=np.float32)
+    inputs = np.empty((count, config.input_channels, config.input_height, config.input_width), dtype=np.float32)
     targets = np.empty((count, 2, config.input_height, config.input_width), dtype=np.float32)
     for i in tqdm(range(count), desc="targets", unit="scene", disable=not progress):
         frame = frame_from_record(store.scene(i))
@@ -175,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         kind = type(getattr(defaults, field))
         parser.add_argument(f"--{field.replace('_', '-')}", type=kind, default=getattr(defaults, field))
     parser.add_argument("--widths", type=int, nargs="+", default=list(defaults.widths))
+    parser.add_argument("--no-colour", action="store_true",
+                        help="read the depth (relief) plane alone: the ablation of what colour gives the baseline")
     args = parser.parse_args(argv)
     try:
         check_input_dir(args.data, "--data")
@@ -182,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         config = dataclasses.replace(
             defaults, epochs=args.epochs, batch_size=args.batch_size, learning_rate=args.learning_rate,
             input_height=args.input_height, input_width=args.input_width, val_fraction=args.val_fraction,
-            widths=tuple(args.widths))
+            widths=tuple(args.widths), colour=not args.no_colour)
         meta = train(args.data, args.out, config, seed=args.seed, max_scenes=args.max_scenes, threads=args.threads,
                      progress=not args.quiet, command=command_line("policies.cao.train", argv))
     except (ValueError, FileNotFoundError, OSError) as exc:
