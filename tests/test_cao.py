@@ -231,7 +231,7 @@ def test_training_cli_runs_end_to_end(tiny_dataset, tmp_path, capsys):
     assert train_main(["--data", str(tmp_path / "nowhere"), "--out", str(out)]) == 2
 
 
-def test_depth_only_network_reads_relief_alone_and_ignores_colour(tiny_dataset, tmp_path):
+def test_depth_only_network_reads_relief_alone_and_ignores_colour(tiny_dataset, trained, tmp_path):
     """The ablation without colour: one input plane, the relief one, so recolouring the scene changes nothing."""
     from policies.cao.network import prepare_input
 
@@ -252,14 +252,8 @@ def test_depth_only_network_reads_relief_alone_and_ignores_colour(tiny_dataset, 
     obs, info = observation(record)
     recoloured = {**obs, "rgb": (255 - obs["rgb"]).astype(np.uint8)}
     assert np.array_equal(policy.heatmaps(obs, info), policy.heatmaps(recoloured, info))
-    colour = CaoPolicy(checkpoint=train_colour(tiny_dataset, tmp_path), threads=1)
+    colour = CaoPolicy(checkpoint=trained[0], threads=1)  # the RGB-D network does read it
     assert not np.array_equal(colour.heatmaps(obs, info), colour.heatmaps(recoloured, info))
-
-
-def train_colour(dataset, tmp_path):
-    out = tmp_path / "colour.pt"
-    train(dataset, out, dataclasses.replace(SMALL, epochs=1, widths=(4, 8)), seed=0, threads=1, progress=False)
-    return out
 
 
 def test_policy_returns_ranked_candidates_and_valid_action(trained):

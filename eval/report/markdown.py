@@ -19,9 +19,8 @@ from eval.report.config import (
     QUALITY_TITLES,
 )
 from eval.report.figures import plot_clearance, plot_failures, plot_precision_at_k
-from eval.report.splits import report_split_sha
 from eval.report.seed_runs import MIN_SEEDS
-from eval.report.splits import MORE_POINTS, MORE_POINTS_TRAIN_SCENES
+from eval.report.splits import MORE_POINTS, MORE_POINTS_TRAIN_SCENES, report_split_sha
 from eval.report.tables import (
     _unavailable,
     ablation_comparison_table,
