@@ -5,6 +5,7 @@ Prints a markdown table.
     .venv/bin/python benchmarks/bench_diffusion.py [--threads 2] [--sizes 4096 8192 16384] [--repeats 3]
     python benchmarks/bench_diffusion.py --device cuda [--checkpoint CKPT]   # on a lent GPU: the paper preset only
     .venv/bin/python benchmarks/bench_diffusion.py --env-clouds 8   # the paper preset on ParcelPick-v0's own clouds
+    .venv/bin/python benchmarks/bench_diffusion.py --candidates 4   # the shipped model, by depth candidates decoded
 
 With ``--device cuda`` the precompute still runs on the CPU (as in the policy) and the network on the GPU, timed
 with the device synchronised, in float32 and under bfloat16 autocast; ``--checkpoint`` times a trained model (its
@@ -158,19 +159,48 @@ def bench_deploy(cfg: DiffusionConfig, n: int, repeats: int) -> dict:
             "predict + trajectory (ms)": timed(lambda: traj.predict(obs), repeats), "peak RSS MB": peak_mb()}
 
 
-def env_clouds(count: int, points: int = 16384) -> list[dict[str, np.ndarray]]:
-    """``count`` ParcelPick-v0 observations at ``points`` points: stacked piles of 10 and 30, every object set."""
+def env_views(count: int, points: int) -> list[tuple[dict[str, np.ndarray], dict]]:
+    """``count`` ParcelPick-v0 (obs, info) pairs at ``points`` points: stacked piles of 10 and 30, every object set."""
     from parcelpick_env.envs.parcel_pick import ParcelPickEnv
     from parcelpick_env.assets.library import OBJECT_SETS
 
-    clouds = []
+    views = []
     for i in range(count):
         env = ParcelPickEnv(num_parcels=(10, 30)[i % 2], layout="stacked", object_set=OBJECT_SETS[i % len(OBJECT_SETS)],
                             num_points=points)
-        obs, _ = env.reset(seed=i)
-        clouds.append({"points": obs["points"], "normals": obs["normals"]})
+        views.append(env.reset(seed=i))
         env.close()
-    return clouds
+    return views
+
+
+def env_clouds(count: int, points: int = 16384) -> list[dict[str, np.ndarray]]:
+    """The clouds alone of ``env_views``: the paper preset decodes at its own points."""
+    return [{"points": obs["points"], "normals": obs["normals"]} for obs, _ in env_views(count, points)]
+
+
+def bench_candidates(views: list[tuple[dict[str, np.ndarray], dict]], repeats: int,
+                     counts: tuple[int, ...] = (0, 8192, 16384)) -> list[dict]:
+    """The shipped checkpoint's ``predict`` on each env view at each ``candidate_points`` (0: at the encoded points),
+    interleaved call by call, and the depth candidates' own share."""
+    from policies.diffusion.candidates import depth_candidates
+
+    policies = {c: DiffusionSuctionPolicy(candidate_points=c, record_trajectory=False) for c in counts}
+    times: dict[int, list[float]] = {c: [] for c in counts}
+    shares: dict[int, list[float]] = {c: [] for c in counts}
+    for obs, info in views:
+        for policy in policies.values():
+            policy.predict(obs, info)  # warm-up on this view
+        for _ in range(repeats):
+            for c, policy in policies.items():
+                times[c].append(1000 * _time(lambda: policy.predict(obs, info)))
+                shares[c].append(1000 * _time(lambda: depth_candidates(obs, info, c)) if c else 0.0)
+    rows = []
+    for c in counts:
+        q = np.percentile(times[c], [50, 90])
+        rows.append({"candidate_points": c or "0 (the encoded points)", "views": len(views), "calls": len(times[c]),
+                     "predict median (ms)": float(q[0]), "p90 (ms)": float(q[1]),
+                     "of which candidates, median (ms)": float(np.median(shares[c]))})
+    return rows
 
 
 def bench_env_clouds(clouds: list[dict[str, np.ndarray]], repeats: int, decode_points: int,
@@ -245,9 +275,12 @@ def main() -> None:
     p.add_argument("--checkpoint", help="with --device cuda: time this trained model instead of an untrained one")
     p.add_argument("--env-clouds", type=int, default=0, metavar="K",
                    help="only the paper preset's predict on K of ParcelPick-v0's 16,384-point observations")
+    p.add_argument("--candidates", type=int, default=0, metavar="K",
+                   help="only the shipped model's predict on K of ParcelPick-v0's observations, at 0, 8,192 and "
+                        "16,384 depth candidates")
     args = p.parse_args()
-    if args.env_clouds < 0:
-        p.error(f"--env-clouds must be >= 0, got {args.env_clouds}")
+    if args.env_clouds < 0 or args.candidates < 0:
+        p.error(f"--env-clouds and --candidates must be >= 0, got {args.env_clouds}, {args.candidates}")
     global CLOCK
     if args.cpu_time:
         CLOCK = time.process_time
@@ -258,6 +291,14 @@ def main() -> None:
         rows = bench_cuda(DiffusionConfig(), max(args.repeats, 10), args.decode_points, args.checkpoint)
         print(f"### Diffusion-Suction inference on the GPU, B=1, precompute on {args.threads} CPU threads, wall "
               f"times in ms (median of {max(args.repeats, 10)})\n")
+        print(table(rows))
+        return
+
+    if args.candidates:
+        rows = bench_candidates(env_views(args.candidates, 4096), max(args.repeats, 5))
+        print(f"### The shipped Diffusion-Suction's policy.predict on ParcelPick-v0's observations (640 x 480, 4,096 "
+              f"points), by depth candidates decoded, B=1, {args.threads} torch threads, "
+              f"{'CPU' if args.cpu_time else 'wall'} ms\n")
         print(table(rows))
         return
 

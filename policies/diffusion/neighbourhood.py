@@ -120,6 +120,29 @@ def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers:
     return out
 
 
+def segment_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfig,
+                   queries: np.ndarray | None = None, workers: int = 1) -> dict[str, np.ndarray]:
+    """The surface segments' lever arms (``surface_levers``) and sizes (``surface_size``) that the config uses, at
+    every point; with ``queries``, at the queries too (rows after the points'), each in its nearest point's segment."""
+    out: dict[str, np.ndarray] = {}
+    points = np.asarray(points, dtype=np.float64)
+    labels = segment_surfaces(points, normals, config.segment_radius, config.segment_min_cos)
+    offsets = offsets_to_centroids(points, labels)  # once, for the levers and the sizes alike
+    sizes = segment_sizes(points, labels, offsets) if config.segment_size else None
+    cloud = points
+    if queries is not None:
+        nearest = cKDTree(points).query(queries, workers=workers)[1]
+        cloud = np.concatenate([points, queries])
+        offsets = np.concatenate([offsets, (points + offsets)[nearest] - queries])
+        labels = np.concatenate([labels, labels[nearest]])
+        sizes = None if sizes is None else np.concatenate([sizes, sizes[nearest]])
+    if config.segment_levers or config.levers_in_encoder:
+        out["surface_levers"] = segment_levers(cloud, labels, offsets)
+    if sizes is not None:
+        out["surface_size"] = sizes
+    return out
+
+
 def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfig, workers: int = 1,
                  rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Everything the model needs precomputed for one cloud: the neighbourhoods (PointNet++ encoder), and the
@@ -129,12 +152,34 @@ def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfi
     if config.encoder == "pointnet2":
         out.update(compute_neighbourhoods(points, config, workers, rows))
     if config.uses_segments:
-        labels = segment_surfaces(points, normals, config.segment_radius, config.segment_min_cos)
-        offsets = offsets_to_centroids(points, labels)  # once, for the levers and the sizes alike
-        if config.segment_levers or config.levers_in_encoder:
-            out["surface_levers"] = segment_levers(points, labels, offsets)
-        if config.segment_size:
-            out["surface_size"] = segment_sizes(points, labels, offsets)
+        out.update(segment_inputs(points, normals, config))
+    return out
+
+
+def model_inputs_at(points: np.ndarray, normals: np.ndarray, queries: np.ndarray, query_normals: np.ndarray,
+                    config: DiffusionConfig, workers: int = 1) -> dict[str, np.ndarray]:
+    """The model's batch for the cloud ``points`` followed by ``queries`` (N + M rows of ``points`` and ``normals``),
+    to encode ``points`` and read features at the queries alone: ``DiffusionSuction.encode(batch, rows)`` with
+    ``rows = arange(N, N + M)`` (``candidates.py``: the depth image's points, denser than the encoded cloud).
+
+    The encoder's levels sample and group ``points`` only, the density the model learnt at; the finest interpolation
+    runs at the queries. A query joins the surface segment of its nearest point: segmenting the union instead joins
+    parcels across gaps the encoded density keeps open (measured: Top-50 AP 46.0 against 57.8 at the encoded points on
+    16 test scenes). PointNet++ encoders only: the PointNet ablation's global feature would pool the queries too.
+    """
+    if config.encoder != "pointnet2":
+        raise ValueError(f"model_inputs_at needs the PointNet++ encoder, this config's is {config.encoder!r}")
+    points = np.asarray(points, dtype=np.float64)
+    queries = np.asarray(queries, dtype=np.float64)
+    if queries.ndim != 2 or queries.shape[1] != 3 or len(queries) == 0:
+        raise ValueError(f"queries must be a non-empty (M, 3) array, got shape {queries.shape}")
+    out = compute_neighbourhoods(points, config, workers)
+    out["fp1_index"], out["fp1_weight"] = interpolation(queries, points[out["sa1_centres"]], workers)
+    out["points"] = np.concatenate([points, queries]).astype(np.float32)
+    out["normals"] = np.concatenate([np.asarray(normals, dtype=np.float64),
+                                     np.asarray(query_normals, dtype=np.float64)]).astype(np.float32)
+    if config.uses_segments:
+        out.update(segment_inputs(points, normals, config, queries, workers))
     return out
 
 

@@ -15,7 +15,8 @@ from policies.base import Candidates, Policy
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
 from policies.diffusion.model import DiffusionSuction, check_draws
 from policies.diffusion.pointnet2 import fold_batchnorm
-from policies.diffusion.neighbourhood import grid_sample, model_inputs, sample_indices
+from policies.diffusion.candidates import depth_candidates, has_depth_view
+from policies.diffusion.neighbourhood import grid_sample, model_inputs, model_inputs_at, sample_indices
 from policies.observation import point_cloud
 from policies.postprocess import NMS_RADIUS, select_candidates
 
@@ -51,10 +52,12 @@ class DiffusionSuctionPolicy(Policy):
     def __init__(self, checkpoint: str | os.PathLike | None = None, device: str = "cpu", seed: int = 0,
                  num_threads: int | None = None, inference_steps: int | None = None, decode_points: int | None = None,
                  nms_radius: float = NMS_RADIUS, record_trajectory: bool = True, model: DiffusionSuction | None = None,
-                 precision: str = "float32", draws: int = 1):
+                 precision: str = "float32", draws: int = 1, candidate_points: int | None = None):
         """Loads ``checkpoint`` (default: the shipped one); ``model`` instead uses an in-memory model (tests).
 
-        ``decode_points`` > 0 denoises a uniform subset of that many points (faster; candidates need no more).
+        ``candidate_points`` > 0 decodes at up to that many of the depth image's points in the bin, where the
+        observation carries them (``DiffusionConfig.candidate_points``, its default); 0 at the encoded points.
+        ``decode_points`` > 0 denoises a uniform subset of that many of those points (faster).
         ``precision`` ('float32' | 'bfloat16') is the encoder's arithmetic at inference (see ``PRECISIONS``).
         ``draws`` > 1 ranks by the mean score map of that many noise draws (``DiffusionSuction.sample``).
         """
@@ -80,6 +83,12 @@ class DiffusionSuctionPolicy(Policy):
             warnings.warn(f"sampling with {self.inference_steps} DDIM steps, trained with "
                           f"{self.config.inference_steps}: the paper finds mismatched step counts lose most AP")
         self.decode_points = self.config.decode_points if decode_points is None else int(decode_points)
+        self.candidate_points = self.config.candidate_points if candidate_points is None else int(candidate_points)
+        if self.decode_points < 0 or self.candidate_points < 0:
+            raise ValueError(f"decode_points and candidate_points must be >= 0, got {self.decode_points}, "
+                             f"{self.candidate_points}")
+        if self.config.encoder != "pointnet2":
+            self.candidate_points = 0  # the PointNet ablation's global feature cannot leave the queries out
         self.nms_radius = nms_radius
         self.record_trajectory = record_trajectory
         self.last_trajectory: Trajectory | None = None
@@ -101,9 +110,20 @@ class DiffusionSuctionPolicy(Policy):
             keep = sample_indices(points, cfg.num_points, cfg.sampler)
             points, normals = points[keep], normals[keep]
         subset = None
-        if 0 < self.decode_points < len(points):
-            subset = np.sort(grid_sample(points, self.decode_points))
-        features = self.encode_cloud(points, normals, subset)  # (1, M, F), at the decoded points only
+        if self.candidate_points > 0 and info is not None and has_depth_view(obs, info):
+            queries, query_normals = depth_candidates(obs, info, self.candidate_points)
+            if len(queries) == 0:
+                self.last_trajectory = None
+                return _empty()
+            if 0 < self.decode_points < len(queries):
+                keep = np.sort(grid_sample(queries, self.decode_points))
+                queries, query_normals = queries[keep], query_normals[keep]
+            features = self.encode_at(points, normals, queries, query_normals)
+            points, normals = queries, query_normals
+        else:
+            if 0 < self.decode_points < len(points):
+                subset = np.sort(grid_sample(points, self.decode_points))
+            features = self.encode_cloud(points, normals, subset)  # (1, M, F), at the decoded points only
         with torch.inference_mode():
             out = self.model.sample(features, self.inference_steps, self._generator,
                                     return_trajectory=self.record_trajectory, draws=self.draws)
@@ -120,9 +140,20 @@ class DiffusionSuctionPolicy(Policy):
         """The encoder's per-point condition features (1, M, F) of one cloud, at the ``subset`` rows (all: None)."""
         batch = {"points": points, "normals": normals,  # the finest interpolation only where the decoder reads
                  **model_inputs(points, normals, self.config, workers=torch.get_num_threads(), rows=subset)}
+        rows = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
+        return self._encode(batch, rows)
+
+    def encode_at(self, points: np.ndarray, normals: np.ndarray, queries: np.ndarray, query_normals: np.ndarray
+                  ) -> torch.Tensor:
+        """The encoder's condition features (1, M, F) at ``queries`` (M, 3), of the cloud ``points`` (its levels
+        sample ``points`` alone: ``neighbourhood.model_inputs_at``)."""
+        batch = model_inputs_at(points, normals, queries, query_normals, self.config, workers=torch.get_num_threads())
+        rows = torch.arange(len(points), len(points) + len(queries), device=self.device).unsqueeze(0)
+        return self._encode(batch, rows)
+
+    def _encode(self, batch: Mapping[str, np.ndarray], rows: torch.Tensor | None) -> torch.Tensor:
         tensors = {k: torch.from_numpy(np.ascontiguousarray(v)).unsqueeze(0).to(self.device) for k, v in batch.items()}
         low = self.precision != "float32"
-        rows = None if subset is None else torch.from_numpy(subset).unsqueeze(0).to(self.device)
         with torch.inference_mode():
             with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=low):
                 return self.model.encode(tensors, rows).float()
