@@ -252,8 +252,14 @@ def test_depth_only_network_reads_relief_alone_and_ignores_colour(tiny_dataset, 
     obs, info = observation(record)
     recoloured = {**obs, "rgb": (255 - obs["rgb"]).astype(np.uint8)}
     assert np.array_equal(policy.heatmaps(obs, info), policy.heatmaps(recoloured, info))
-    colour = CaoPolicy(checkpoint=trained[0], threads=1)  # the RGB-D network does read it
+    grey = {k: v for k, v in obs.items() if k != "rgb"}  # nor needs it
+    assert np.array_equal(policy.heatmaps(grey, info), policy.heatmaps(obs, info))
+    colour = CaoPolicy(checkpoint=trained[0], threads=1)  # the RGB-D network does read it, and needs it
     assert not np.array_equal(colour.heatmaps(obs, info), colour.heatmaps(recoloured, info))
+    with pytest.raises(ValueError, match="rgb"):
+        colour.heatmaps(grey, info)
+    with pytest.raises(ValueError, match="colour"):
+        prepare_input(None, record["depth"], SMALL)
 
 
 def test_policy_returns_ranked_candidates_and_valid_action(trained):

@@ -18,9 +18,10 @@ RGB_MEAN, RGB_STD = 0.5, 0.25
 MAX_RELIEF = 5.0  # clamp of the normalised depth channel, in units of depth_scale
 
 
-def prepare_input(rgb: np.ndarray, depth: np.ndarray, config: CaoConfig) -> np.ndarray:
+def prepare_input(rgb: np.ndarray | None, depth: np.ndarray, config: CaoConfig) -> np.ndarray:
     """(``config.input_channels``, h, w) float32 network input from an (H, W, 3) uint8 image and (H, W) metric
-    depth: the normalised RGB planes (unless ``config.colour`` is False), then the relief plane.
+    depth: the normalised RGB planes (unless ``config.colour`` is False: then ``rgb`` may be None), then the relief
+    plane.
 
     Depth is made relative to the scene's median depth so the net sees relief, not camera height;
     holes (0) stay 0, i.e. "at the median". Colour is resized with anti-aliasing, depth by nearest pixel.
@@ -33,6 +34,8 @@ def prepare_input(rgb: np.ndarray, depth: np.ndarray, config: CaoConfig) -> np.n
         relief[valid] = np.clip((d[valid] - np.median(d[valid])) / config.depth_scale, -MAX_RELIEF, MAX_RELIEF)
     if not config.colour:
         return relief[None]
+    if rgb is None:
+        raise ValueError("this Cao network reads colour (config.colour): an RGB image is required")
     colour = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float() / 255.0
     if colour.shape[-2:] != out_hw:
         colour = F.interpolate(colour, size=out_hw, mode="bilinear", antialias=True, align_corners=False)

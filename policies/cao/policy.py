@@ -32,13 +32,14 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[CaoNet, dict[str, Any]]:
     return net.eval(), checkpoint
 
 
-def _observation(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Validated (rgb, depth (H, W), intrinsics, extrinsics); a clear ValueError for anything malformed."""
-    if "rgb" not in obs:
+def _observation(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None, colour: bool
+                 ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
+    """Validated (rgb, depth (H, W), intrinsics, extrinsics); a clear ValueError for anything malformed. ``rgb`` is
+    None for a network without ``colour``, which never reads it (an observation need not carry it)."""
+    if colour and "rgb" not in obs:
         raise ValueError("Cao policy needs obs['rgb'] (RGB-D input)")
     depth = depth_image(obs, "Cao policy", require_returns=False)
-    rgb = rgb_image(obs, depth.shape, "Cao policy")
+    rgb = rgb_image(obs, depth.shape, "Cao policy") if colour else None
     K, T = camera(info, "Cao policy")
     return rgb, depth, K, T
 
@@ -68,10 +69,10 @@ class CaoPolicy(Policy):
     @torch.inference_mode()
     def heatmaps(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None) -> np.ndarray:
         """(2, H, W) float32 [seal, centre] in [0, 1] at the observation's resolution."""
-        rgb, depth, _, _ = _observation(obs, info)
+        rgb, depth, _, _ = _observation(obs, info, self.config.colour)
         return self._heatmaps(rgb, depth)
 
-    def _heatmaps(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    def _heatmaps(self, rgb: np.ndarray | None, depth: np.ndarray) -> np.ndarray:
         previous = torch.get_num_threads()
         if self.threads is not None:
             torch.set_num_threads(self.threads)
@@ -96,7 +97,7 @@ class CaoPolicy(Policy):
                 top_k: int = 50) -> Candidates:
         if top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {top_k}")
-        rgb, depth, K, T = _observation(obs, info)
+        rgb, depth, K, T = _observation(obs, info, self.config.colour)
         seal, centre = self._heatmaps(rgb, depth)
         box, cell = self._extraction_sizes(depth.shape[1])
         score = box_filter(seal * centre, box, valid=workspace_pixels(depth, K, T, workspace(info, "Cao policy")))
