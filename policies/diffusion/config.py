@@ -81,7 +81,7 @@ class DiffusionConfig:
     # Inference only, not in the paper: >0 decodes at up to this many of the observed depth image's points in the bin
     # (candidates.py), where the observation has the depth image, the camera and the bin (the env's 'pointcloud'
     # mode, the AP's records), instead of at the encoded cloud's points; PointNet++ encoders only. 0: the encoded
-    # points. 16,384, the paper's cloud: +3.5 Top-50 AP over the encoded 4,096 (docs/diffusion.md).
+    # points. 16,384, the paper's cloud: +3.3 Top-50 AP over the encoded 4,096 (docs/diffusion.md).
     candidate_points: int = 16384
 
     def __post_init__(self) -> None:
