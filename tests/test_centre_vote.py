@@ -54,6 +54,7 @@ def test_each_vote_is_averaged_with_its_nearest_votes_within_the_radius():
     every = cluster_centres(votes, radius=0.02, neighbours=8)
     np.testing.assert_allclose(every[:, 0], [0.005, 0.035 / 3, 0.0175, 1.0])  # {0,1}, {0,1,2}, {1,2}, alone
     np.testing.assert_allclose(every[3], votes[3])
+    np.testing.assert_array_equal(cluster_centres(votes, radius=0.02, neighbours=8, workers=2), every)  # threads
     nearest = cluster_centres(votes, radius=0.02, neighbours=2)  # the middle vote keeps its nearer partner only
     np.testing.assert_allclose(nearest[:, 0], [0.005, 0.005, 0.0175, 1.0])
     np.testing.assert_allclose(cluster_centres(votes, radius=0.02, neighbours=1), votes)

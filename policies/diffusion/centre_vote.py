@@ -111,9 +111,9 @@ def inputs_of(features: torch.Tensor, normals: torch.Tensor, in_features: int) -
     return torch.cat([features.float(), normals.float()], dim=-1)
 
 
-def cluster_centres(centres: np.ndarray, radius: float, neighbours: int) -> np.ndarray:
+def cluster_centres(centres: np.ndarray, radius: float, neighbours: int, workers: int = 1) -> np.ndarray:
     """(N, 3) float64: each voted centre averaged with its ``neighbours`` nearest votes within ``radius`` (itself
-    among them).
+    among them); ``workers``: the k-NN query's threads (the same neighbours, faster for many votes).
 
     Votes for one parcel scatter around its centre; their local mean is steadier than any one of them. The cap
     bounds the cost where votes crowd (all pairs within 4 cm on a synthetic pile: 1 million)."""
@@ -125,7 +125,7 @@ def cluster_centres(centres: np.ndarray, radius: float, neighbours: int) -> np.n
     if len(centres) == 0:
         return centres.copy()
     k = min(int(neighbours), len(centres))
-    distances, index = cKDTree(centres).query(centres, k=k, distance_upper_bound=radius)
+    distances, index = cKDTree(centres).query(centres, k=k, distance_upper_bound=radius, workers=workers)
     distances, index = distances.reshape(len(centres), k), index.reshape(len(centres), k)
     found = np.isfinite(distances)  # beyond the radius: inf distance, index N
     padded = np.vstack([centres, np.zeros((1, 3))])

@@ -43,6 +43,7 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
             offsets = self.centre_head(features, torch.from_numpy(np.ascontiguousarray(normals)).to(self.device))
         votes = points.astype(np.float64) + offsets.cpu().numpy().astype(np.float64)
         config = self.centre_head.config
-        self.last_centres = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours)
+        self.last_centres = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours,
+                                            torch.get_num_threads())
         wrench = vote_wrench(points, normals, self.last_centres, config.wrench_definition)
         return super().quality(points, normals, features, channel_scores) * wrench
