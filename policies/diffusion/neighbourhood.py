@@ -97,15 +97,21 @@ def level_sizes(config: DiffusionConfig, n: int) -> list[int]:
 
 
 def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers: int = 1,
-                           rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                           rows: np.ndarray | None = None, queries: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """All SA/FP index arrays for one cloud (see module docstring); ``workers``: scipy k-NN threads. ``rows``
     (indices of fewer than N points): the finest interpolation (``fp1_index`` / ``fp1_weight``) at those points
     only, the ones a decoded subset reads (``DiffusionSuction.encode(batch, rows)``); each row's is what the whole
-    cloud's would hold there, to the bit (every query point is its own query)."""
+    cloud's would hold there, to the bit (every query point is its own query). ``queries`` (M, 3), instead: the
+    finest interpolation at those points, which need not be the cloud's (``model_inputs_at``)."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
         raise ValueError(f"points must be a non-empty (N, 3) array, got shape {points.shape}")
-    finest = points if rows is None or len(rows) >= len(points) else points[np.asarray(rows, dtype=np.int64)]
+    if queries is not None:
+        finest = np.asarray(queries, dtype=np.float64)
+    elif rows is None or len(rows) >= len(points):
+        finest = points
+    else:
+        finest = points[np.asarray(rows, dtype=np.int64)]
     out: dict[str, np.ndarray] = {}
     level = points
     for l, (m, radii) in enumerate(zip(level_sizes(config, len(points)), config.sa_radii), start=1):
@@ -173,8 +179,7 @@ def model_inputs_at(points: np.ndarray, normals: np.ndarray, queries: np.ndarray
     queries = np.asarray(queries, dtype=np.float64)
     if queries.ndim != 2 or queries.shape[1] != 3 or len(queries) == 0:
         raise ValueError(f"queries must be a non-empty (M, 3) array, got shape {queries.shape}")
-    out = compute_neighbourhoods(points, config, workers)
-    out["fp1_index"], out["fp1_weight"] = interpolation(queries, points[out["sa1_centres"]], workers)
+    out = compute_neighbourhoods(points, config, workers, queries=queries)
     out["points"] = np.concatenate([points, queries]).astype(np.float32)
     out["normals"] = np.concatenate([np.asarray(normals, dtype=np.float64),
                                      np.asarray(query_normals, dtype=np.float64)]).astype(np.float32)
