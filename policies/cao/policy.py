@@ -36,8 +36,6 @@ def _observation(obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None, 
                  ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
     """Validated (rgb, depth (H, W), intrinsics, extrinsics); a clear ValueError for anything malformed. ``rgb`` is
     None for a network without ``colour``, which never reads it (an observation need not carry it)."""
-    if colour and "rgb" not in obs:
-        raise ValueError("Cao policy needs obs['rgb'] (RGB-D input)")
     depth = depth_image(obs, "Cao policy", require_returns=False)
     rgb = rgb_image(obs, depth.shape, "Cao policy") if colour else None
     K, T = camera(info, "Cao policy")
