@@ -2,9 +2,12 @@
 on the same clouds, and the votes alone (head, clustering, wrench). Prints a markdown table.
 
     .venv/bin/python benchmarks/bench_centre_vote.py [--threads 2] [--points 4096 16384] [--repeats 5] [--data DIR]
+    .venv/bin/python benchmarks/bench_centre_vote.py --views 4   # on ParcelPick-v0's observations, by voters
 
 The clouds are synthetic piles (``policies.diffusion.synthetic``), so the figures do not depend on a dataset; with
-``--data``, also the first stored scene's cloud (a real pile, whose votes crowd less than a synthetic one's).
+``--data``, also the first stored scene's cloud (a real pile, whose votes crowd less than a synthetic one's). With
+``--views K``, the policies decide on K of the env's observations, decoding at the depth candidates, with the
+votes cast at every decoded point and at the shipped ``voters``.
 """
 
 from __future__ import annotations
@@ -20,7 +23,6 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from policies.diffusion.centre_vote import cluster_centres, vote_wrench  # noqa: E402
 from policies.diffusion.policy import DiffusionSuctionPolicy  # noqa: E402
 from policies.diffusion.synthetic import synthetic_scene  # noqa: E402
 from policies.diffusion.vote_policy import DiffusionCentreVotePolicy  # noqa: E402
@@ -36,14 +38,47 @@ def median_ms(run, repeats: int) -> float:
     return 1000.0 * statistics.median(times)
 
 
+def bench_views(count: int, repeats: int) -> None:
+    """Median and p90 of each policy's ``predict`` on ``count`` env views, interleaved call by call."""
+    from bench_diffusion import env_views
+
+    views = env_views(count, 4096)
+    policies = {"diffusion": DiffusionSuctionPolicy(record_trajectory=False),
+                "diffusion_vote, voters=0 (every decoded point)": DiffusionCentreVotePolicy(voters=0,
+                                                                                            record_trajectory=False)}
+    shipped = DiffusionCentreVotePolicy(record_trajectory=False)
+    policies[f"diffusion_vote, voters={shipped.centre_head.config.voters} (shipped)"] = shipped
+    times: dict[str, list[float]] = {name: [] for name in policies}
+    for obs, info in views:
+        for policy in policies.values():
+            policy.predict(obs, info)  # warm-up on this view
+        for _ in range(repeats):
+            for name, policy in policies.items():
+                t0 = time.perf_counter()
+                policy.predict(obs, info)
+                times[name].append(1000.0 * (time.perf_counter() - t0))
+    print(f"| policy ({count} views, {repeats} calls each) | predict median (ms) | p90 (ms) |")
+    print("|---|---|---|")
+    for name, values in times.items():
+        median, p90 = np.percentile(values, [50, 90])
+        print(f"| {name} | {median:.1f} | {p90:.1f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--points", type=int, nargs="+", default=[4096, 16384])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--data", help="also time the first scene of this dataset directory")
+    parser.add_argument("--views", type=int, default=0, metavar="K",
+                        help="only the policies on K of ParcelPick-v0's observations, at the depth candidates")
     args = parser.parse_args()
+    if args.views < 0:
+        parser.error(f"--views must be >= 0, got {args.views}")
     torch.set_num_threads(args.threads)
+    if args.views:
+        bench_views(args.views, args.repeats)
+        return
     base = DiffusionSuctionPolicy(record_trajectory=False)
     vote = DiffusionCentreVotePolicy(record_trajectory=False)
     print("| input points | diffusion predict (ms) | diffusion_vote predict (ms) | votes alone (ms) |")
@@ -60,13 +95,10 @@ def main() -> None:
         obs = {"points": np.asarray(scene["points"], np.float32), "normals": np.asarray(scene["normals"], np.float32)}
         points, normals = obs["points"][: base.config.num_points], obs["normals"][: base.config.num_points]
         features = base.encode_cloud(points, normals)[0]
-        head = vote.centre_head
+        channels = np.ones((len(points), 3), dtype=np.float32)
 
         def votes_alone() -> None:
-            with torch.inference_mode():
-                offsets = head(features, torch.from_numpy(np.ascontiguousarray(normals))).numpy()
-            centres = cluster_centres(points + offsets, head.config.cluster_radius, head.config.cluster_neighbours)
-            vote_wrench(points, normals, centres, head.config.wrench_definition)
+            vote.quality(points, normals, features, channels)
 
         row = [median_ms(lambda: base.predict(obs), args.repeats), median_ms(lambda: vote.predict(obs), args.repeats),
                median_ms(votes_alone, args.repeats)]

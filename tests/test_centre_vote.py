@@ -21,7 +21,7 @@ from policies.diffusion.model import build_model
 from policies.diffusion.policy import DiffusionSuctionPolicy
 from policies.diffusion.synthetic import synthetic_scene
 from policies.diffusion.train_centre_vote import CentreVoteTraining, fit, main, vote_targets
-from policies.diffusion.vote_policy import DiffusionCentreVotePolicy
+from policies.diffusion.vote_policy import DiffusionCentreVotePolicy, spread_indices
 from policies.surface_segments import LEVER_UNIT
 
 
@@ -101,6 +101,7 @@ def test_a_vote_beside_an_upward_contact_costs_the_torque_of_the_unit_weight_on_
 @pytest.mark.parametrize("fields, message", [({"cluster_radius": 0.0}, "cluster_radius"),
                                              ({"cluster_neighbours": 0}, "cluster_neighbours"),
                                              ({"wrench_definition": "physical"}, "wrench_definition"),
+                                             ({"voters": -1}, "voters"),
                                              ({"hidden": ()}, "hidden"), ({"hidden": (8, 0)}, "hidden")])
 def test_bad_vote_configs_name_the_field(fields, message):
     with pytest.raises(ValueError, match=message):
@@ -142,7 +143,7 @@ def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
                            ((0.003, 0.0, -0.05), 1.0 - config.unit_mass * config.gravity * 0.003 / config.torque_threshold),
                            ((0.5, 0.0, 0.0), 0.0)):
         policy = DiffusionCentreVotePolicy(model=model, centre_head=_constant_head(model.encode_width, offset),
-                                           record_trajectory=False)
+                                           voters=0, record_trajectory=False)  # every point votes: its own centre
         np.testing.assert_allclose(policy.quality(points, n, features, channels), channels.prod(axis=1) * factor,
                                    rtol=1e-5, atol=1e-7)
         np.testing.assert_allclose(policy.last_centres, points + np.asarray(offset), atol=1e-6)
@@ -152,6 +153,39 @@ def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
             np.testing.assert_array_equal(picks.scores, base.scores)
         if factor == 0.0:  # half a metre of lever: only contacts whose frame nearly hides that torque keep a score
             assert picks.scores.max() < 0.5 * base.scores.max()
+
+
+def test_spread_indices_cover_the_range_evenly_and_zero_takes_every_one():
+    np.testing.assert_array_equal(spread_indices(10, 4), [0, 3, 6, 9])
+    np.testing.assert_array_equal(spread_indices(5, 0), np.arange(5))
+    np.testing.assert_array_equal(spread_indices(5, 8), np.arange(5))
+    picked = spread_indices(16384, 4096)
+    assert len(np.unique(picked)) == 4096 and picked[0] == 0 and picked[-1] == 16383
+    assert set(np.diff(picked)) <= {4, 5}
+
+
+def test_points_between_the_voters_take_their_nearest_voters_centre():
+    """Votes cast at every 4th point: each other point's centre is its nearest voter's, not its own vote."""
+    model, _ = load_model(DEFAULT_CHECKPOINT)
+    m = 64
+    points = np.zeros((m, 3), dtype=np.float32)
+    points[:, 0] = np.arange(m) * 0.01  # a row of points 1 cm apart: voters at 0, 3, 6, ... (spread_indices(64, 22))
+    normals = np.tile([0.0, 0.0, 1.0], (m, 1)).astype(np.float32)
+    channels = np.ones((m, 3), dtype=np.float32)
+    offset = np.array([0.0, 0.0, -0.05])
+    features = torch.zeros(m, model.encode_width)
+    every = DiffusionCentreVotePolicy(model=model, centre_head=_constant_head(model.encode_width, tuple(offset)),
+                                      voters=0, record_trajectory=False)
+    every.quality(points, normals, features, channels)
+    np.testing.assert_allclose(every.last_centres, points + offset, atol=1e-6)
+    some = DiffusionCentreVotePolicy(model=model, centre_head=_constant_head(model.encode_width, tuple(offset)),
+                                     voters=22, record_trajectory=False)
+    assert some.centre_head.config.voters == 22
+    some.quality(points, normals, features, channels)
+    voters = spread_indices(m, 22)
+    nearest = voters[np.abs(points[:, :1] - points[voters, 0][None, :]).argmin(axis=1)]
+    np.testing.assert_allclose(some.last_centres, points[nearest] + offset, atol=1e-6)
+    assert not np.allclose(some.last_centres, every.last_centres)
 
 
 def test_the_trainer_writes_a_head_that_only_its_own_model_reads(data, tiny_checkpoint, tmp_path):

@@ -45,6 +45,10 @@ class CentreVoteConfig:
     hidden: tuple[int, ...] = (256, 256, 128)  # MLP widths on (features, normal)
     cluster_radius: float = 0.04  # m: each vote is averaged with the votes this close (0.02 and 0.04 tried on val)
     cluster_neighbours: int = 64  # ... at most this many, the nearest (itself among them)
+    # The votes are cast at this many of the decoded points, evenly spread (0: at every one), and each other point
+    # takes its nearest voter's centre: the neighbours' cap then spans the same area at any candidate density
+    # (256-1024 level on the validation split, every one of 16,384 2.1 lower; docs/training.md, 'Centre votes').
+    voters: int = 512
     wrench_definition: str = "suctionnet"  # whose wrench formula re-weights the score (VOTE_DEFINITIONS)
 
     def __post_init__(self) -> None:
@@ -55,6 +59,7 @@ class CentreVoteConfig:
             require_int(owner, "hidden widths", width, lo=1)
         require_positive_numbers(self, ("cluster_radius",))
         require_int(owner, "cluster_neighbours", self.cluster_neighbours, lo=1)
+        require_int(owner, "voters", self.voters, lo=0)
         require_choice(owner, "wrench_definition", self.wrench_definition, VOTE_DEFINITIONS)
 
     def to_dict(self) -> dict[str, Any]:

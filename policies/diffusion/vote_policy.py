@@ -3,11 +3,13 @@ about each point's voted parcel centre (``centre_vote.py``). Not in the paper.""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from policies.diffusion.centre_vote import (DEFAULT_CENTRE_VOTE, CentreVoteHead, cluster_centres, file_sha256,
                                             load_centre_vote, vote_wrench)
@@ -17,14 +19,18 @@ from policies.diffusion.policy import DiffusionSuctionPolicy
 
 class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
     """``DiffusionSuctionPolicy`` whose ranking score is its channels' product times the wrench score about each
-    point's voted centre (each vote averaged with its ``cluster_neighbours`` nearest within ``cluster_radius``)."""
+    point's voted centre (each vote averaged with its ``cluster_neighbours`` nearest within ``cluster_radius``; votes
+    cast at ``voters`` of the decoded points, the others taking their nearest voter's centre)."""
 
     name = "diffusion_vote"
 
     def __init__(self, checkpoint: str | os.PathLike | None = None, centre_vote: str | os.PathLike | None = None,
-                 centre_head: CentreVoteHead | None = None, **kwargs: Any) -> None:
+                 centre_head: CentreVoteHead | None = None, voters: int | None = None,
+                 cluster_neighbours: int | None = None, **kwargs: Any) -> None:
         """``centre_vote``: the head's checkpoint (default: the shipped one), which must have been trained on
-        ``checkpoint``'s features; ``centre_head`` instead uses an in-memory head (tests, with ``model=``)."""
+        ``checkpoint``'s features; ``centre_head`` instead uses an in-memory head (tests, with ``model=``).
+        ``voters``, ``cluster_neighbours``: in place of the head's stored ``CentreVoteConfig`` values (they act at
+        inference only; ``--policy-arg voters=0`` votes at every decoded point)."""
         super().__init__(checkpoint=checkpoint, **kwargs)
         if centre_head is None:
             encoder = checkpoint or DEFAULT_CHECKPOINT
@@ -34,16 +40,33 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         width = int(self.model.encode_width)
         if centre_head.in_features != width:
             raise ValueError(f"the centre vote head reads {centre_head.in_features} features, the model gives {width}")
+        overrides = {k: v for k, v in (("voters", voters), ("cluster_neighbours", cluster_neighbours)) if v is not None}
+        if overrides:
+            centre_head.config = dataclasses.replace(centre_head.config, **overrides)
         self.centre_head = centre_head.to(self.device).eval()
         self.last_centres: np.ndarray | None = None  # (M, 3) voted and averaged centres of the last decoded points
 
     def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
                 ) -> np.ndarray:
-        with torch.inference_mode():
-            offsets = self.centre_head(features, torch.from_numpy(np.ascontiguousarray(normals)).to(self.device))
-        votes = points.astype(np.float64) + offsets.cpu().numpy().astype(np.float64)
         config = self.centre_head.config
-        self.last_centres = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours,
-                                            torch.get_num_threads())
+        threads = torch.get_num_threads()
+        voters = spread_indices(len(points), config.voters)
+        with torch.inference_mode():
+            at = torch.from_numpy(voters).to(self.device)
+            offsets = self.centre_head(features[at], torch.from_numpy(np.ascontiguousarray(normals[voters])).to(self.device))
+        votes = points[voters].astype(np.float64) + offsets.cpu().numpy().astype(np.float64)
+        centres = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours, threads)
+        if len(voters) < len(points):
+            nearest = cKDTree(points[voters]).query(points, workers=threads)[1]
+            centres = centres[nearest]
+        self.last_centres = centres
         wrench = vote_wrench(points, normals, self.last_centres, config.wrench_definition)
         return super().quality(points, normals, features, channel_scores) * wrench
+
+
+def spread_indices(count: int, at_most: int) -> np.ndarray:
+    """(min(count, at_most),) int64 indices evenly spread over ``range(count)``, every one where ``at_most`` is 0:
+    the decoded points come in image order, so an even stride covers the view."""
+    if at_most == 0 or at_most >= count:
+        return np.arange(count)
+    return np.linspace(0, count - 1, at_most).round().astype(np.int64)
