@@ -13,9 +13,7 @@ votes cast at every decoded point and at the shipped ``voters``.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,21 +24,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from policies.diffusion.policy import DiffusionSuctionPolicy  # noqa: E402
 from policies.diffusion.synthetic import synthetic_scene  # noqa: E402
 from policies.diffusion.vote_policy import DiffusionCentreVotePolicy  # noqa: E402
-
-
-def median_ms(run, repeats: int) -> float:
-    run()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * statistics.median(times)
+from timing import time_calls  # noqa: E402
 
 
 def bench_views(count: int, repeats: int) -> None:
     """Median and p90 of each policy's ``predict`` on ``count`` env views, interleaved call by call."""
     from bench_diffusion import env_views
+    from timing import interleaved_times
 
     views = env_views(count, 4096)
     policies = {"diffusion": DiffusionSuctionPolicy(record_trajectory=False),
@@ -50,13 +40,10 @@ def bench_views(count: int, repeats: int) -> None:
     policies[f"diffusion_vote, voters={shipped.centre_head.config.voters} (shipped)"] = shipped
     times: dict[str, list[float]] = {name: [] for name in policies}
     for obs, info in views:
-        for policy in policies.values():
-            policy.predict(obs, info)  # warm-up on this view
-        for _ in range(repeats):
-            for name, policy in policies.items():
-                t0 = time.perf_counter()
-                policy.predict(obs, info)
-                times[name].append(1000.0 * (time.perf_counter() - t0))
+        samples = interleaved_times({name: (lambda p=policy: p.predict(obs, info)) for name, policy in policies.items()},
+                                    repeats)
+        for name in policies:
+            times[name] += samples[name]
     print(f"| policy ({count} views, {repeats} calls each) | predict median (ms) | p90 (ms) |")
     print("|---|---|---|")
     for name, values in times.items():
@@ -100,8 +87,8 @@ def main() -> None:
         def votes_alone() -> None:
             vote.quality(points, normals, features, channels)
 
-        row = [median_ms(lambda: base.predict(obs), args.repeats), median_ms(lambda: vote.predict(obs), args.repeats),
-               median_ms(votes_alone, args.repeats)]
+        row = [time_calls(lambda: base.predict(obs), args.repeats), time_calls(lambda: vote.predict(obs), args.repeats),
+               time_calls(votes_alone, args.repeats)]
         print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in row) + " |")
 
 

@@ -37,6 +37,7 @@ from policies.diffusion.neighbourhood import NeighbourhoodTransform, model_input
 from policies.diffusion.pointnet2 import fold_batchnorm  # noqa: E402
 from policies.diffusion.policy import PRECISIONS, DiffusionSuctionPolicy, cpu_runs_bfloat16_natively  # noqa: E402
 from policies.diffusion.synthetic import synthetic_scene  # noqa: E402
+from timing import interleaved_times  # noqa: E402  (benchmarks/timing.py)
 
 
 CLOCK = time.perf_counter  # --cpu-time switches to process CPU time (a shared, oversubscribed box inflates wall time)
@@ -188,12 +189,12 @@ def bench_candidates(views: list[tuple[dict[str, np.ndarray], dict]], repeats: i
     times: dict[int, list[float]] = {c: [] for c in counts}
     shares: dict[int, list[float]] = {c: [] for c in counts}
     for obs, info in views:
-        for policy in policies.values():
-            policy.predict(obs, info)  # warm-up on this view
-        for _ in range(repeats):
-            for c, policy in policies.items():
-                times[c].append(1000 * _time(lambda: policy.predict(obs, info)))
-                shares[c].append(1000 * _time(lambda: depth_candidates(obs, info, c)) if c else 0.0)
+        calls = {("predict", c): (lambda p=policy: p.predict(obs, info)) for c, policy in policies.items()}
+        calls.update({("candidates", c): (lambda c=c: depth_candidates(obs, info, c)) for c in counts if c})
+        samples = interleaved_times(calls, repeats, CLOCK)
+        for c in counts:
+            times[c] += samples[("predict", c)]
+            shares[c] += samples.get(("candidates", c), [0.0] * repeats)
     rows = []
     for c in counts:
         q = np.percentile(times[c], [50, 90])
@@ -212,11 +213,10 @@ def bench_env_clouds(clouds: list[dict[str, np.ndarray]], repeats: int, decode_p
                 for p in PRECISIONS}
     times: dict[str, list[float]] = {p: [] for p in PRECISIONS}
     for cloud in clouds:
-        for policy in policies.values():
-            policy.predict(cloud)  # warm-up on this cloud's size
-        for _ in range(repeats):
-            for p, policy in policies.items():
-                times[p].append(1000 * _time(lambda: policy.predict(cloud)))
+        samples = interleaved_times({p: (lambda policy=policy: policy.predict(cloud)) for p, policy in policies.items()},
+                                    repeats, CLOCK)
+        for p in PRECISIONS:
+            times[p] += samples[p]
     rows = []
     for p, ms in times.items():
         q = np.percentile(ms, [10, 50, 90])
