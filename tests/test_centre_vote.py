@@ -165,7 +165,7 @@ def test_spread_indices_cover_the_range_evenly_and_zero_takes_every_one():
 
 
 def test_points_between_the_voters_take_their_nearest_voters_centre():
-    """Votes cast at every 4th point: each other point's centre is its nearest voter's, not its own vote."""
+    """Votes cast at every third point: each other point's centre is its nearest voter's, not its own vote."""
     model, _ = load_model(DEFAULT_CHECKPOINT)
     m = 64
     points = np.zeros((m, 3), dtype=np.float32)

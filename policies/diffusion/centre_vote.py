@@ -47,7 +47,7 @@ class CentreVoteConfig:
     cluster_neighbours: int = 64  # ... at most this many, the nearest (itself among them)
     # The votes are cast at this many of the decoded points, evenly spread (0: at every one), and each other point
     # takes its nearest voter's centre: the neighbours' cap then spans the same area at any candidate density
-    # (256-1024 level on the validation split, every one of 16,384 2.1 lower; docs/training.md, 'Centre votes').
+    # (256-1024 level on the validation split, every one of 16,384 2.1 lower; docs/training.md, 'Voters').
     voters: int = 512
     wrench_definition: str = "suctionnet"  # whose wrench formula re-weights the score (VOTE_DEFINITIONS)
 

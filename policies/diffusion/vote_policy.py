@@ -66,7 +66,7 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
 
 def spread_indices(count: int, at_most: int) -> np.ndarray:
     """(min(count, at_most),) int64 indices evenly spread over ``range(count)``, every one where ``at_most`` is 0:
-    the decoded points come in image order, so an even stride covers the view."""
+    the depth candidates come in image order, so an even stride covers the view."""
     if at_most == 0 or at_most >= count:
         return np.arange(count)
     return np.linspace(0, count - 1, at_most).round().astype(np.int64)
