@@ -97,21 +97,15 @@ def level_sizes(config: DiffusionConfig, n: int) -> list[int]:
 
 
 def compute_neighbourhoods(points: np.ndarray, config: DiffusionConfig, workers: int = 1,
-                           rows: np.ndarray | None = None, queries: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """All SA/FP index arrays for one cloud (see module docstring); ``workers``: scipy k-NN threads. ``rows``
-    (indices of fewer than N points): the finest interpolation (``fp1_index`` / ``fp1_weight``) at those points
-    only, the ones a decoded subset reads (``DiffusionSuction.encode(batch, rows)``); each row's is what the whole
-    cloud's would hold there, to the bit (every query point is its own query). ``queries`` (M, 3), instead: the
-    finest interpolation at those points, which need not be the cloud's (``model_inputs_at``)."""
+                           queries: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """All SA/FP index arrays for one cloud (see module docstring); ``workers``: scipy k-NN threads. ``queries``
+    (M, 3): the finest interpolation (``fp1_index`` / ``fp1_weight``) at those points instead of the cloud's, which
+    may be some of the cloud's own (``model_inputs(rows=)``: each row's is what the whole cloud's would hold there,
+    to the bit, every query point being its own query) or others (``model_inputs_at``)."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
         raise ValueError(f"points must be a non-empty (N, 3) array, got shape {points.shape}")
-    if queries is not None:
-        finest = np.asarray(queries, dtype=np.float64)
-    elif rows is None or len(rows) >= len(points):
-        finest = points
-    else:
-        finest = points[np.asarray(rows, dtype=np.int64)]
+    finest = points if queries is None else np.asarray(queries, dtype=np.float64)
     out: dict[str, np.ndarray] = {}
     level = points
     for l, (m, radii) in enumerate(zip(level_sizes(config, len(points)), config.sa_radii), start=1):
@@ -153,10 +147,14 @@ def model_inputs(points: np.ndarray, normals: np.ndarray, config: DiffusionConfi
                  rows: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Everything the model needs precomputed for one cloud: the neighbourhoods (PointNet++ encoder), and the
     surface segments' lever arms (``surface_levers``) and sizes (``surface_size``) where the config uses them.
-    ``rows``: see :func:`compute_neighbourhoods` (the segment channels stay at every point)."""
+    ``rows`` (indices of fewer than N points): the finest interpolation at those points only, the ones a decoded
+    subset reads (``DiffusionSuction.encode(batch, rows)``); the segment channels stay at every point."""
     out: dict[str, np.ndarray] = {}
     if config.encoder == "pointnet2":
-        out.update(compute_neighbourhoods(points, config, workers, rows))
+        queries = None
+        if rows is not None and len(rows) < len(points):
+            queries = np.asarray(points, dtype=np.float64)[np.asarray(rows, dtype=np.int64)]
+        out.update(compute_neighbourhoods(points, config, workers, queries))
     if config.uses_segments:
         out.update(segment_inputs(points, normals, config))
     return out
