@@ -51,13 +51,14 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         config = self.centre_head.config
         threads = torch.get_num_threads()
         voters = spread_indices(len(points), config.voters)
+        voter_points = points[voters]
         with torch.inference_mode():
             at = torch.from_numpy(voters).to(self.device)
             offsets = self.centre_head(features[at], torch.from_numpy(np.ascontiguousarray(normals[voters])).to(self.device))
-        votes = points[voters].astype(np.float64) + offsets.cpu().numpy().astype(np.float64)
+        votes = voter_points.astype(np.float64) + offsets.cpu().numpy().astype(np.float64)
         centres = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours, threads)
         if len(voters) < len(points):
-            nearest = cKDTree(points[voters]).query(points, workers=threads)[1]
+            nearest = cKDTree(voter_points).query(points, workers=threads)[1]
             centres = centres[nearest]
         self.last_centres = centres
         wrench = vote_wrench(points, normals, self.last_centres, config.wrench_definition)
