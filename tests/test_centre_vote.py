@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from centre_heads import constant_head
 from generated_records import generate_tiny
 
 from dataset.scene_record import scene_from_record
@@ -14,15 +15,14 @@ from dataset.storage import open_dataset
 from parcelpick_env.cli import run_cli
 from parcelpick_env.suction.quality import definition_config, definition_scorer
 from policies.diffusion.centre_vote import (DEFAULT_CENTRE_VOTE, CentreVoteConfig, CentreVoteHead, cluster_centres,
-                                            file_sha256, load_centre_vote, vote_wrench)
+                                            file_sha256, load_centre_vote, spread_draws, vote_wrench)
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model, save_checkpoint
 from policies.diffusion.config import DiffusionConfig
 from policies.diffusion.model import build_model
 from policies.diffusion.policy import DiffusionSuctionPolicy
 from policies.diffusion.synthetic import synthetic_scene
-from policies.diffusion.train_centre_vote import CentreVoteTraining, fit, main, vote_targets
+from policies.diffusion.train_centre_vote import CentreVoteTraining, fit, fit_spread, main, vote_targets
 from policies.diffusion.vote_policy import DiffusionCentreVotePolicy, spread_indices
-from policies.surface_segments import LEVER_UNIT
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -51,14 +51,22 @@ def tiny_checkpoint(tmp_path_factory):
 
 def test_each_vote_is_averaged_with_its_nearest_votes_within_the_radius():
     votes = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.025, 0.0, 0.0], [1.0, 1.0, 1.0]])
-    every = cluster_centres(votes, radius=0.02, neighbours=8)
+    every, spread = cluster_centres(votes, radius=0.02, neighbours=8)
     np.testing.assert_allclose(every[:, 0], [0.005, 0.035 / 3, 0.0175, 1.0])  # {0,1}, {0,1,2}, {1,2}, alone
     np.testing.assert_allclose(every[3], votes[3])
-    np.testing.assert_array_equal(cluster_centres(votes, radius=0.02, neighbours=8, workers=2), every)  # threads
-    nearest = cluster_centres(votes, radius=0.02, neighbours=2)  # the middle vote keeps its nearer partner only
+    np.testing.assert_array_equal(spread, 0.0)  # no predicted errors: equal weights, no spread
+    np.testing.assert_array_equal(cluster_centres(votes, radius=0.02, neighbours=8, workers=2)[0], every)  # threads
+    nearest = cluster_centres(votes, radius=0.02, neighbours=2)[0]  # the middle vote keeps its nearer partner only
     np.testing.assert_allclose(nearest[:, 0], [0.005, 0.005, 0.0175, 1.0])
-    np.testing.assert_allclose(cluster_centres(votes, radius=0.02, neighbours=1), votes)
-    np.testing.assert_array_equal(cluster_centres(np.zeros((0, 3)), 0.04, 64).shape, (0, 3))
+    np.testing.assert_allclose(cluster_centres(votes, radius=0.02, neighbours=1)[0], votes)
+    np.testing.assert_array_equal(cluster_centres(np.zeros((0, 3)), 0.04, 64)[0].shape, (0, 3))
+    # weighted by 1 / error^2: vote 0 (error 1 cm) counts four times vote 1 (2 cm); the typical error is their mean
+    weighted, typical = cluster_centres(votes, radius=0.02, neighbours=8, spreads=np.array([0.01, 0.02, 0.02, 0.05]))
+    assert weighted[0, 0] == pytest.approx((4 * 0.0 + 0.01) / 5)
+    assert typical[0] == pytest.approx((4 * 0.01 + 0.02) / 5)
+    assert typical[3] == pytest.approx(0.05) and weighted[3] == pytest.approx(votes[3])
+    with pytest.raises(ValueError, match="spreads"):
+        cluster_centres(votes, 0.02, 8, spreads=np.array([0.01, -0.01, 0.01, 0.01]))
     with pytest.raises(ValueError, match="radius"):
         cluster_centres(votes, 0.0, 8)
     with pytest.raises(ValueError, match="neighbours"):
@@ -98,35 +106,83 @@ def test_a_vote_beside_an_upward_contact_costs_the_torque_of_the_unit_weight_on_
         vote_wrench(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.zeros((1, 3)), "physical")
 
 
+def test_the_expected_wrench_averages_the_score_over_the_centres_error():
+    """Known answer: a level contact over its centre, the centre known to within s an axis. A shift (dx, dy) bends
+    the cup by m g s (dx, dy) in SuctionNet's frame, so the score is the draws' mean of 1 - m g s max(|dx|, |dy|)
+    over the threshold."""
+    config = definition_config("suctionnet")
+    up, below = np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, -0.05]])
+    draws = spread_draws(16)
+    for s in (0.002, 0.01):
+        load = config.unit_mass * config.gravity * s * np.abs(draws).max(axis=1) / config.torque_threshold
+        got = vote_wrench(np.zeros((1, 3)), up, below, "suctionnet", spread=np.array([s]), draws=16)
+        assert got[0] == pytest.approx(np.mean(1.0 - np.minimum(1.0, load)), rel=1e-6)
+        assert got[0] < 1.0  # an uncertain centre costs score even right above it
+    # zero spread is the wrench about the centre; on a random cloud the mean over draws is the loop's
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(200, 3)) * 0.1
+    normals = rng.normal(size=(200, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    centres, spread = points + rng.normal(size=(200, 3)) * 0.03, rng.uniform(0.0, 0.03, 200)
+    np.testing.assert_allclose(vote_wrench(points, normals, centres, "paper", spread=np.zeros(200)),
+                               vote_wrench(points, normals, centres, "paper"), atol=1e-7)
+    for definition in ("suctionnet", "paper"):
+        loop = np.mean([vote_wrench(points, normals, centres + np.column_stack([spread * dx, spread * dy,
+                                                                                 np.zeros(200)]), definition)
+                        for dx, dy in spread_draws(8)], axis=0)
+        np.testing.assert_allclose(vote_wrench(points, normals, centres, definition, spread=spread, draws=8), loop,
+                                   atol=1e-6)
+
+
+def test_the_spread_draws_sample_a_unit_normal_the_same_way_every_time():
+    for count in (4, 16, 256):
+        draws = spread_draws(count)
+        assert draws.shape == (count, 2)
+        np.testing.assert_array_equal(draws, spread_draws(count))
+        np.testing.assert_allclose(draws.mean(axis=0), 0.0, atol=1e-12)  # the moments of N(0, I), exactly
+        np.testing.assert_allclose(draws.var(axis=0), 1.0, rtol=1e-12)
+        assert abs(np.mean(draws[:, 0] * draws[:, 1])) < 1e-12
+    radii = np.linalg.norm(spread_draws(256), axis=1)  # and the rings' radii spread as a 2-D normal's do
+    assert np.median(radii) == pytest.approx(np.sqrt(2 * np.log(2)), rel=0.05)
+    for count in (0, 6):
+        with pytest.raises(ValueError, match="count"):
+            spread_draws(count)
+
+
 @pytest.mark.parametrize("fields, message", [({"cluster_radius": 0.0}, "cluster_radius"),
                                              ({"cluster_neighbours": 0}, "cluster_neighbours"),
                                              ({"wrench_definition": "physical"}, "wrench_definition"),
                                              ({"voters": -1}, "voters"),
-                                             ({"hidden": ()}, "hidden"), ({"hidden": (8, 0)}, "hidden")])
+                                             ({"hidden": ()}, "hidden"), ({"hidden": (8, 0)}, "hidden"),
+                                             ({"spread_hidden": ()}, "spread_hidden"),
+                                             ({"spread_scale": -1.0}, "spread_scale"),
+                                             ({"spread_draws": 0}, "spread_draws"),
+                                             ({"spread_draws": 6}, "spread_draws")])
 def test_bad_vote_configs_name_the_field(fields, message):
     with pytest.raises(ValueError, match=message):
         CentreVoteConfig(**fields)
 
 
-def test_the_head_learns_offsets_that_its_inputs_determine():
+def test_the_head_learns_offsets_that_its_inputs_determine_and_where_they_are_noisy():
     rng = np.random.default_rng(0)
-    inputs = torch.from_numpy(rng.normal(size=(2000, 11)).astype(np.float32))
+    inputs = torch.from_numpy(rng.normal(size=(4000, 11)).astype(np.float32))
     targets = inputs[:, :3] * 0.5 - inputs[:, 3:6] * 0.3  # in LEVER_UNIT
-    head = CentreVoteHead(8, CentreVoteConfig(hidden=(32, 32)))
-    losses = fit(head, inputs, targets, CentreVoteTraining(steps=400, batch_points=256, lr=3e-3), seed=0)
+    head = CentreVoteHead(8, CentreVoteConfig(hidden=(32, 32), spread_hidden=(32, 32)))
+    training = CentreVoteTraining(steps=400, batch_points=256, lr=3e-3, spread_steps=400)
+    losses = fit(head, inputs, targets, training, seed=0)
     assert losses[-1] < 0.15 * losses[0]
+    # noise that the offsets cannot learn, ten times larger where the 7th input is positive: the spread sees it
+    noisy = inputs[:, 6] > 0
+    scale = torch.where(noisy, 1.0, 0.1)[:, None]
+    spread_losses = fit_spread(head, inputs, targets + scale * torch.from_numpy(rng.normal(size=(4000, 3))).float(),
+                               training, seed=0)
+    assert spread_losses[-1] < spread_losses[0]
+    with torch.inference_mode():
+        spread = torch.exp(head.log_spread_units(inputs))
+    ratio = float(spread[noisy].median() / spread[~noisy].median())
+    assert 5.0 < ratio < 20.0, ratio
     with pytest.raises(ValueError, match="no parcel points"):
         fit(head, inputs[:0], targets[:0], CentreVoteTraining(steps=1), seed=0)
-
-
-def _constant_head(in_features: int, offset_m: tuple[float, float, float]) -> CentreVoteHead:
-    """A head that votes every point's centre at ``offset_m`` from it (no clustering: a tiny radius)."""
-    head = CentreVoteHead(in_features, CentreVoteConfig(hidden=(4,), cluster_radius=1e-9))
-    with torch.no_grad():
-        for p in head.parameters():
-            p.zero_()
-        head.mlp[-1].bias.copy_(torch.tensor(offset_m) / LEVER_UNIT)
-    return head.eval()
 
 
 def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
@@ -142,7 +198,7 @@ def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
     for offset, factor in (((0.0, 0.0, -0.05), 1.0),
                            ((0.003, 0.0, -0.05), 1.0 - config.unit_mass * config.gravity * 0.003 / config.torque_threshold),
                            ((0.5, 0.0, 0.0), 0.0)):
-        policy = DiffusionCentreVotePolicy(model=model, centre_head=_constant_head(model.encode_width, offset),
+        policy = DiffusionCentreVotePolicy(model=model, centre_head=constant_head(model.encode_width, offset),
                                            voters=0, record_trajectory=False)  # every point votes: its own centre
         np.testing.assert_allclose(policy.quality(points, n, features, channels), channels.prod(axis=1) * factor,
                                    rtol=1e-5, atol=1e-7)
@@ -153,6 +209,15 @@ def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
             np.testing.assert_array_equal(picks.scores, base.scores)
         if factor == 0.0:  # half a metre of lever: only contacts whose frame nearly hides that torque keep a score
             assert picks.scores.max() < 0.5 * base.scores.max()
+    # a vote known to within 1 cm an axis: the wrench expected over that error, below the wrench at the centre
+    offset = (0.003, 0.0, -0.05)
+    policy = DiffusionCentreVotePolicy(model=model, centre_head=constant_head(model.encode_width, offset, 0.01),
+                                       voters=0, record_trajectory=False)
+    expected = vote_wrench(points, n, points + np.asarray(offset), "suctionnet", spread=np.full(m, 0.01), draws=16)
+    np.testing.assert_allclose(policy.quality(points, n, features, channels), channels.prod(axis=1) * expected,
+                               rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(policy.last_spread, 0.01, rtol=1e-5)
+    assert expected.max() < 1.0 - config.unit_mass * config.gravity * 0.003 / config.torque_threshold
 
 
 def test_spread_indices_cover_the_range_evenly_and_zero_takes_every_one():
@@ -174,11 +239,11 @@ def test_points_between_the_voters_take_their_nearest_voters_centre():
     channels = np.ones((m, 3), dtype=np.float32)
     offset = np.array([0.0, 0.0, -0.05])
     features = torch.zeros(m, model.encode_width)
-    every = DiffusionCentreVotePolicy(model=model, centre_head=_constant_head(model.encode_width, tuple(offset)),
+    every = DiffusionCentreVotePolicy(model=model, centre_head=constant_head(model.encode_width, tuple(offset)),
                                       voters=0, record_trajectory=False)
     every.quality(points, normals, features, channels)
     np.testing.assert_allclose(every.last_centres, points + offset, atol=1e-6)
-    some = DiffusionCentreVotePolicy(model=model, centre_head=_constant_head(model.encode_width, tuple(offset)),
+    some = DiffusionCentreVotePolicy(model=model, centre_head=constant_head(model.encode_width, tuple(offset)),
                                      voters=22, record_trajectory=False)
     assert some.centre_head.config.voters == 22
     some.quality(points, normals, features, channels)

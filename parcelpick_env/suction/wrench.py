@@ -34,16 +34,35 @@ def wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.ndarray,
                   config: SuctionConfig) -> np.ndarray:
     """(N,) wrench score for contacts ``points`` with outward ``normals`` on bodies centred at ``centres``
     (the COM for ``"paper"``, the surface centroid for the SuctionNet models; the scorer chooses)."""
-    force = np.array([0.0, 0.0, -config.unit_mass * config.gravity])
-    torque = np.cross(centres - points, force)
+    return _scores_of_torques(np.cross(centres - points, _unit_weight(config)), normals, config)
+
+
+def expected_wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, spread: np.ndarray,
+                           draws: np.ndarray, config: SuctionConfig) -> np.ndarray:
+    """(N,) mean of ``wrench_scores`` over centres moved horizontally by ``spread * draws[k]``: the score expected
+    when each centre is only known to within ``spread`` (N,) metres per axis, ``draws`` (K, 2) being samples of
+    the unit error. A centre's shift adds its own cross product with the weight to the torque, so the K torques are
+    one broadcast sum, not K calls."""
+    weight = _unit_weight(config)
+    shifts = np.cross(np.column_stack([draws, np.zeros(len(draws))]), weight)  # (K, 3) torque of a unit shift
+    torques = np.cross(centres - points, weight)[None] + np.asarray(spread)[None, :, None] * shifts[:, None, :]
+    return _scores_of_torques(torques, normals, config).mean(axis=0, dtype=np.float64).astype(np.float32)
+
+
+def _unit_weight(config: SuctionConfig) -> np.ndarray:
+    return np.array([0.0, 0.0, -config.unit_mass * config.gravity])
+
+
+def _scores_of_torques(torque: np.ndarray, normals: np.ndarray, config: SuctionConfig) -> np.ndarray:
+    """(..., N) float32 scores of gravity torques (..., N, 3) about contacts with ``normals`` (N, 3)."""
     if config.wrench_model == "paper":
-        torque -= np.sum(torque * normals, axis=1, keepdims=True) * normals
-        torque_ratio = np.minimum(1.0, np.linalg.norm(torque, axis=1) / config.torque_threshold)
+        torque = torque - np.sum(torque * normals, axis=-1, keepdims=True) * normals
+        torque_ratio = np.minimum(1.0, np.linalg.norm(torque, axis=-1) / config.torque_threshold)
         # -n . (0, 0, -1) = n_z
         angle = np.arccos(np.clip(normals[:, 2], -1.0, 1.0))
         return ((1.0 - torque_ratio) * (1.0 - angle / np.pi)).astype(np.float32)
     x, y, z = suctionnet_frames(normals)
-    t_x, t_y, t_z = (np.sum(torque * axis, axis=1) for axis in (x, y, z))
+    t_x, t_y, t_z = (np.sum(torque * axis, axis=-1) for axis in (x, y, z))
     if config.wrench_model == "suctionnet":
         load = np.maximum(np.abs(t_y), np.abs(t_z)) / config.torque_threshold
     else:  # suctionnet_label

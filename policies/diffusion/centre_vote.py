@@ -8,6 +8,11 @@ its smooth surface segment 40.1 (docs/training.md, 'Centre votes'). So a small h
 centre from the frozen encoder's features (VoteNet's idea); each vote is averaged with its nearest votes within
 ``cluster_radius`` of it, and SuctionNet's wrench formula (``wrench_scores``) about that centre re-weights the
 model's score. The head reads only the observation's features: no ground truth at inference.
+
+Each vote also carries its predicted error (``spread``, a second MLP on the same inputs, fitted to the first's
+residuals): votes are averaged with weights 1/sigma^2, and the score takes the wrench expected over the averaged
+centre's typical error (``expected_wrench_scores``), so a pick on a parcel whose centre is uncertain ranks below
+one that is known (docs/training.md, 'The vote's spread').
 """
 
 from __future__ import annotations
@@ -26,12 +31,12 @@ from torch import nn
 from parcelpick_env.config_checks import (config_from_dict, config_to_dict, require, require_choice, require_int,
                                           require_positive_numbers)
 from parcelpick_env.suction.quality import definition_config
-from parcelpick_env.suction.wrench import wrench_scores
+from parcelpick_env.suction.wrench import expected_wrench_scores, wrench_scores
 from policies.checkpoint_io import load_weights, read_checkpoint, save_atomic
 from policies.surface_segments import LEVER_UNIT
 
 FORMAT = "parcelpick-centre-vote"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the spread MLP
 DEFAULT_CENTRE_VOTE = Path(__file__).resolve().parent / "checkpoints" / "centre_vote.pt"
 TRAIN_COMMAND = "python -m policies.diffusion.train_centre_vote --data DIR"
 # The definitions whose wrench is a closed formula of the lever alone (unit mass): ``physical`` needs the real mass.
@@ -50,13 +55,23 @@ class CentreVoteConfig:
     # (256-1024 level on the validation split, every one of 16,384 2.1 lower; docs/training.md, 'Voters').
     voters: int = 512
     wrench_definition: str = "suctionnet"  # whose wrench formula re-weights the score (VOTE_DEFINITIONS)
+    spread_hidden: tuple[int, ...] = (128, 128)  # MLP widths of the votes' predicted error, on the same inputs
+    # The wrench is the mean over centres moved by spread_scale times the averaged votes' typical error (0: about
+    # the averaged centre alone), sampled at spread_draws fixed draws (0.5, 1, 1.5 and 2 tried on validation)
+    spread_scale: float = 1.0
+    spread_draws: int = 16
 
     def __post_init__(self) -> None:
         owner = type(self).__name__
-        require(isinstance(self.hidden, tuple) and len(self.hidden) > 0, owner,
-                f"hidden must be a non-empty tuple of widths, got {self.hidden!r}")
-        for width in self.hidden:
-            require_int(owner, "hidden widths", width, lo=1)
+        for name in ("hidden", "spread_hidden"):
+            widths = getattr(self, name)
+            require(isinstance(widths, tuple) and len(widths) > 0, owner,
+                    f"{name} must be a non-empty tuple of widths, got {widths!r}")
+            for width in widths:
+                require_int(owner, f"{name} widths", width, lo=1)
+        require(self.spread_scale >= 0, owner, f"spread_scale must be >= 0, got {self.spread_scale!r}")
+        require_int(owner, "spread_draws", self.spread_draws, lo=4)
+        require(self.spread_draws % 4 == 0, owner, f"spread_draws must be a multiple of 4, got {self.spread_draws}")
         require_positive_numbers(self, ("cluster_radius",))
         require_int(owner, "cluster_neighbours", self.cluster_neighbours, lo=1)
         require_int(owner, "voters", self.voters, lo=0)
@@ -71,10 +86,11 @@ class CentreVoteConfig:
 
 
 class CentreVoteHead(nn.Module):
-    """Per-point MLP: (encoder features, normal) -> offset from the point to its parcel's centre, in metres.
+    """Per-point MLPs: (encoder features, normal) -> offset from the point to its parcel's centre, in metres
+    (``mlp``), and the log of that vote's horizontal error, per axis (``spread``).
 
     The inputs are standardised with the training set's statistics (buffers, stored in the checkpoint); the
-    output is learnt in ``LEVER_UNIT`` (decimetres), O(1) like the levers the decoder reads."""
+    outputs are learnt in ``LEVER_UNIT`` (decimetres), O(1) like the levers the decoder reads."""
 
     input_mean: torch.Tensor
     input_std: torch.Tensor
@@ -85,12 +101,8 @@ class CentreVoteHead(nn.Module):
         self.config = config
         self.in_features = int(in_features)
         width = self.in_features + 3
-        layers: list[nn.Module] = []
-        for hidden in config.hidden:
-            layers += [nn.Linear(width, hidden), nn.GELU()]
-            width = hidden
-        layers.append(nn.Linear(width, 3))
-        self.mlp = nn.Sequential(*layers)
+        self.mlp = _mlp(width, config.hidden, 3)
+        self.spread = _mlp(width, config.spread_hidden, 1)  # made second: the offsets' initial weights are as before
         self.register_buffer("input_mean", torch.zeros(self.in_features + 3))
         self.register_buffer("input_std", torch.ones(self.in_features + 3))
 
@@ -103,9 +115,26 @@ class CentreVoteHead(nn.Module):
         """Offsets in ``LEVER_UNIT`` from prepared ``inputs`` (..., in_features + 3): what the training loss reads."""
         return self.mlp((inputs - self.input_mean) / self.input_std)
 
+    def log_spread_units(self, inputs: torch.Tensor) -> torch.Tensor:
+        """(...,) log of each vote's error per horizontal axis, in ``LEVER_UNIT``, from prepared ``inputs``."""
+        return self.spread((inputs - self.input_mean) / self.input_std).squeeze(-1)
+
     def forward(self, features: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
         """(..., 3) offsets in metres for per-point ``features`` (..., F) and unit ``normals`` (..., 3)."""
         return self.forward_units(inputs_of(features, normals, self.in_features)) * LEVER_UNIT
+
+    def votes(self, features: torch.Tensor, normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., 3) offsets and (...,) predicted errors per horizontal axis, both in metres."""
+        inputs = inputs_of(features, normals, self.in_features)
+        return self.forward_units(inputs) * LEVER_UNIT, torch.exp(self.log_spread_units(inputs)) * LEVER_UNIT
+
+
+def _mlp(width: int, hidden: tuple[int, ...], out: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for size in hidden:
+        layers += [nn.Linear(width, size), nn.GELU()]
+        width = size
+    return nn.Sequential(*layers, nn.Linear(width, out))
 
 
 def inputs_of(features: torch.Tensor, normals: torch.Tensor, in_features: int) -> torch.Tensor:
@@ -116,9 +145,12 @@ def inputs_of(features: torch.Tensor, normals: torch.Tensor, in_features: int) -
     return torch.cat([features.float(), normals.float()], dim=-1)
 
 
-def cluster_centres(centres: np.ndarray, radius: float, neighbours: int, workers: int = 1) -> np.ndarray:
+def cluster_centres(centres: np.ndarray, radius: float, neighbours: int, workers: int = 1,
+                    spreads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) float64: each voted centre averaged with its ``neighbours`` nearest votes within ``radius`` (itself
-    among them); ``workers``: the k-NN query's threads (the same neighbours, faster for many votes).
+    among them), weighted by 1 / ``spreads``^2 (each vote's predicted error; None: equal weights); and (N,) the
+    typical error of the votes averaged (their weighted mean spread; zeros without ``spreads``). ``workers``: the
+    k-NN query's threads (the same neighbours, faster for many votes).
 
     Votes for one parcel scatter around its centre; their local mean is steadier than any one of them. The cap
     bounds the cost where votes crowd (all pairs within 4 cm on a synthetic pile: 1 million)."""
@@ -127,21 +159,46 @@ def cluster_centres(centres: np.ndarray, radius: float, neighbours: int, workers
         raise ValueError(f"centres must be (N, 3), got {centres.shape}")
     if not radius > 0 or int(neighbours) != neighbours or neighbours < 1:
         raise ValueError(f"need radius > 0 and neighbours >= 1, got {radius}, {neighbours}")
+    spread = np.zeros(len(centres)) if spreads is None else np.asarray(spreads, dtype=np.float64)
+    if spread.shape != (len(centres),) or not np.all(spread >= 0):
+        raise ValueError(f"spreads must be (N,) = ({len(centres)},) and >= 0, got {spread.shape}")
     if len(centres) == 0:
-        return centres.copy()
+        return centres.copy(), spread.copy()
     k = min(int(neighbours), len(centres))
     distances, index = cKDTree(centres).query(centres, k=k, distance_upper_bound=radius, workers=workers)
     distances, index = distances.reshape(len(centres), k), index.reshape(len(centres), k)
     found = np.isfinite(distances)  # beyond the radius: inf distance, index N
-    padded = np.vstack([centres, np.zeros((1, 3))])
-    return padded[index].sum(axis=1) / found.sum(axis=1, keepdims=True)
+    weights = 1.0 / np.maximum(spread, 1e-6) ** 2 if spreads is not None else np.ones(len(centres))
+    weights = np.where(found, np.append(weights, 0.0)[index], 0.0)
+    total = weights.sum(axis=1)
+    averaged = (np.vstack([centres, np.zeros((1, 3))])[index] * weights[..., None]).sum(axis=1) / total[:, None]
+    return averaged, (np.append(spread, 0.0)[index] * weights).sum(axis=1) / total
 
 
-def vote_wrench(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, definition: str) -> np.ndarray:
-    """(N,) float32: ``definition``'s wrench score of each contact about its voted centre (the shared formula)."""
+def spread_draws(count: int) -> np.ndarray:
+    """(count, 2) fixed samples of a 2-D standard normal, ``count`` a multiple of 4: rings of equal mass, their
+    radii scaled so the mean square is 2, each ring's four points a quarter turn apart (rings turned by the golden
+    angle). So the mean is 0 and each axis's variance 1, exactly, and the expected wrench is deterministic."""
+    require_int("spread_draws", "count", count, lo=4)
+    require(count % 4 == 0, "spread_draws", f"count must be a multiple of 4, got {count}")
+    rings = count // 4
+    radius = np.sqrt(-2.0 * np.log(1.0 - (np.arange(rings) + 0.5) / rings))
+    radius *= np.sqrt(2.0 / np.mean(radius**2))
+    angle = np.arange(rings)[:, None] * np.pi * (3.0 - np.sqrt(5.0)) + np.arange(4)[None, :] * (np.pi / 2)
+    return np.stack([radius[:, None] * np.cos(angle), radius[:, None] * np.sin(angle)], axis=-1).reshape(count, 2)
+
+
+def vote_wrench(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, definition: str,
+                spread: np.ndarray | None = None, draws: int = 16) -> np.ndarray:
+    """(N,) float32: ``definition``'s wrench score of each contact about its voted centre (the shared formula);
+    with ``spread`` (N,) metres per horizontal axis, the score expected over that error of the centre
+    (``draws`` samples)."""
     require_choice("vote_wrench", "definition", definition, VOTE_DEFINITIONS)
-    return wrench_scores(np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64),
-                         np.asarray(centres, dtype=np.float64), definition_config(definition))
+    args = (np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64),
+            np.asarray(centres, dtype=np.float64))
+    if spread is None:
+        return wrench_scores(*args, definition_config(definition))
+    return expected_wrench_scores(*args, spread, spread_draws(draws), definition_config(definition))
 
 
 def file_sha256(path: str | os.PathLike) -> str:

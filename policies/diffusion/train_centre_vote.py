@@ -5,7 +5,8 @@
 
 Per stored scene: the checkpoint's encoder features at the stored cloud (as the policy computes them), and for
 every point on a parcel (the stored ``object_ids``) the offset to that parcel's surface centroid, from the true
-meshes (``dataset.scene_record``). Then the head learns offsets with a smooth L1 loss on random batches of points.
+meshes (``dataset.scene_record``). Then the head learns offsets with a smooth L1 loss on random batches of points,
+and after them the error of its own votes: a Gaussian likelihood of the horizontal residuals (``fit_spread``).
 The head records the checkpoint's SHA-256, so it is never paired with another model's features.
 """
 
@@ -16,6 +17,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -43,9 +45,10 @@ class CentreVoteTraining:
     lr: float = 1e-3  # AdamW, cosine to 0
     weight_decay: float = 1e-4
     beta: float = 0.1  # smooth L1's switch from quadratic to linear, in LEVER_UNIT (1 cm)
+    spread_steps: int = 3000  # then the votes' error, with the offsets frozen (same batches, lr and schedule)
 
     def __post_init__(self) -> None:
-        require_positive_ints(self, ("steps", "batch_points"))
+        require_positive_ints(self, ("steps", "batch_points", "spread_steps"))
         require_positive_numbers(self, ("lr", "beta"))
         require(self.weight_decay >= 0, type(self).__name__, f"weight_decay must be >= 0, got {self.weight_decay!r}")
 
@@ -85,26 +88,51 @@ def collect(data: Path, policy: DiffusionSuctionPolicy, scenes: int | None, prog
 
 def fit(head: CentreVoteHead, inputs: torch.Tensor, targets: torch.Tensor, training: CentreVoteTraining, seed: int,
         progress: bool = False) -> list[float]:
-    """Train ``head`` in place; the loss every 100 steps."""
-    from tqdm import tqdm
-
+    """Train ``head``'s offsets in place; the loss every 100 steps."""
     if len(inputs) == 0:
         raise ValueError("no parcel points to learn centre votes from")
-    generator = torch.Generator().manual_seed(seed)
     head.set_standardisation(inputs)
-    head.train()
-    optimiser = torch.optim.AdamW(head.parameters(), training.lr, weight_decay=training.weight_decay)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, training.steps)
+
+    def loss(batch: torch.Tensor) -> torch.Tensor:
+        return nn.functional.smooth_l1_loss(head.forward_units(inputs[batch]), targets[batch], beta=training.beta)
+    return _optimise(head.mlp, loss, len(inputs), training.steps, training, seed, "centre votes", progress)
+
+
+def fit_spread(head: CentreVoteHead, inputs: torch.Tensor, targets: torch.Tensor, training: CentreVoteTraining,
+               seed: int, progress: bool = False) -> list[float]:
+    """Train ``head``'s spread in place, after ``fit``: the Gaussian negative log-likelihood of the fitted votes'
+    horizontal residuals under each vote's predicted error; the loss every 100 steps."""
+    if len(inputs) == 0:
+        raise ValueError("no parcel points to learn the votes' spread from")
+    with torch.inference_mode():
+        residuals = torch.cat([head.forward_units(inputs[i:i + 65536]) - targets[i:i + 65536]
+                               for i in range(0, len(inputs), 65536)])[:, :2].clone()
+
+    def loss(batch: torch.Tensor) -> torch.Tensor:
+        variance = torch.exp(2.0 * head.log_spread_units(inputs[batch]))[:, None].expand(-1, 2)
+        return nn.functional.gaussian_nll_loss(torch.zeros_like(residuals[batch]), residuals[batch], variance)
+    return _optimise(head.spread, loss, len(inputs), training.spread_steps, training, seed, "vote spread", progress)
+
+
+def _optimise(module: nn.Module, loss_of: Callable[[torch.Tensor], torch.Tensor], rows: int, steps: int,
+              training: CentreVoteTraining, seed: int, desc: str, progress: bool) -> list[float]:
+    """AdamW with a cosine schedule on ``module``'s parameters, each step on ``batch_points`` random rows."""
+    from tqdm import tqdm
+
+    generator = torch.Generator().manual_seed(seed)
+    module.train()
+    optimiser = torch.optim.AdamW(module.parameters(), training.lr, weight_decay=training.weight_decay)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)
     losses = []
-    for step in tqdm(range(training.steps), desc="centre votes", disable=not progress, file=sys.stderr):
-        batch = torch.randint(len(inputs), (training.batch_points,), generator=generator)
-        loss = nn.functional.smooth_l1_loss(head.forward_units(inputs[batch]), targets[batch], beta=training.beta)
+    for step in tqdm(range(steps), desc=desc, disable=not progress, file=sys.stderr):
+        loss = loss_of(torch.randint(rows, (training.batch_points,), generator=generator))
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
         schedule.step()
-        if step % 100 == 0 or step == training.steps - 1:
+        if step % 100 == 0 or step == steps - 1:
             losses.append(float(loss.detach()))
+    module.eval()
     return losses
 
 
@@ -119,6 +147,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--scenes", type=int, default=None, help="use the first N scenes of each (default: all)")
     parser.add_argument("--steps", type=int, default=defaults.steps)
     parser.add_argument("--batch-points", type=int, default=defaults.batch_points)
+    parser.add_argument("--spread-steps", type=int, default=defaults.spread_steps)
     parser.add_argument("--lr", type=float, default=defaults.lr)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
@@ -139,7 +168,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.threads < 1 or args.seed < 0:
         raise UsageError(f"--threads must be >= 1 and --seed >= 0, got {args.threads}, {args.seed}")
     try:
-        training = CentreVoteTraining(steps=args.steps, batch_points=args.batch_points, lr=args.lr)
+        training = CentreVoteTraining(steps=args.steps, batch_points=args.batch_points, lr=args.lr,
+                                      spread_steps=args.spread_steps)
     except ValueError as e:
         raise UsageError(str(e)) from e
     torch.set_num_threads(args.threads)
@@ -149,12 +179,15 @@ def main(argv: list[str] | None = None) -> None:
     torch.manual_seed(args.seed)  # the head's initial weights
     head = CentreVoteHead(policy.model.encode_width, CentreVoteConfig())
     losses = fit(head, inputs, targets, training, args.seed, not args.no_progress)
+    spread_losses = fit_spread(head, inputs, targets, training, args.seed, not args.no_progress)
     provenance = training_provenance(command, args.seed, args.data[0], started)  # the first manifest; all below
     save_centre_vote(args.out, head, file_sha256(args.checkpoint),
-                     {"provenance": provenance, "losses": losses, "points": int(len(inputs)),
+                     {"provenance": provenance, "losses": losses, "spread_losses": spread_losses,
+                      "points": int(len(inputs)),
                       "dataset_manifests_sha256": {str(d): manifest_sha256(d) for d in args.data},
                       "training": {k: getattr(training, k) for k in training.__dataclass_fields__}})
-    print(f"wrote {args.out}: {len(inputs)} parcel points, final loss {losses[-1]:.4f}, "
+    print(f"wrote {args.out}: {len(inputs)} parcel points, final loss {losses[-1]:.4f} (spread "
+          f"{spread_losses[-1]:.4f}), "
           f"{provenance['wall_time_s']:.0f} s")
 
 

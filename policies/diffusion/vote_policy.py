@@ -19,18 +19,20 @@ from policies.diffusion.policy import DiffusionSuctionPolicy
 
 class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
     """``DiffusionSuctionPolicy`` whose ranking score is its channels' product times the wrench score about each
-    point's voted centre (each vote averaged with its ``cluster_neighbours`` nearest within ``cluster_radius``; votes
-    cast at ``voters`` of the decoded points, the others taking their nearest voter's centre)."""
+    point's voted centre (each vote averaged with its ``cluster_neighbours`` nearest within ``cluster_radius``, by
+    their predicted errors; votes cast at ``voters`` of the decoded points, the others taking their nearest voter's
+    centre), expected over that centre's error."""
 
     name = "diffusion_vote"
 
     def __init__(self, checkpoint: str | os.PathLike | None = None, centre_vote: str | os.PathLike | None = None,
                  centre_head: CentreVoteHead | None = None, voters: int | None = None,
-                 cluster_neighbours: int | None = None, **kwargs: Any) -> None:
+                 cluster_neighbours: int | None = None, spread_scale: float | None = None, **kwargs: Any) -> None:
         """``centre_vote``: the head's checkpoint (default: the shipped one), which must have been trained on
         ``checkpoint``'s features; ``centre_head`` instead uses an in-memory head (tests, with ``model=``).
-        ``voters``, ``cluster_neighbours``: in place of the head's stored ``CentreVoteConfig`` values (they act at
-        inference only; ``--policy-arg voters=0`` votes at every decoded point)."""
+        ``voters``, ``cluster_neighbours``, ``spread_scale``: in place of the head's stored ``CentreVoteConfig``
+        values (they act at inference only; ``--policy-arg voters=0`` votes at every decoded point,
+        ``spread_scale=0`` takes the wrench about the averaged centre alone)."""
         super().__init__(checkpoint=checkpoint, **kwargs)
         if centre_head is None:
             encoder = checkpoint or DEFAULT_CHECKPOINT
@@ -40,11 +42,13 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         width = int(self.model.encode_width)
         if centre_head.in_features != width:
             raise ValueError(f"the centre vote head reads {centre_head.in_features} features, the model gives {width}")
-        overrides = {k: v for k, v in (("voters", voters), ("cluster_neighbours", cluster_neighbours)) if v is not None}
+        overrides = {k: v for k, v in (("voters", voters), ("cluster_neighbours", cluster_neighbours),
+                                       ("spread_scale", spread_scale)) if v is not None}
         if overrides:
             centre_head.config = dataclasses.replace(centre_head.config, **overrides)
         self.centre_head = centre_head.to(self.device).eval()
         self.last_centres: np.ndarray | None = None  # (M, 3) voted and averaged centres of the last decoded points
+        self.last_spread: np.ndarray | None = None  # (M,) their typical predicted error per horizontal axis (m)
 
     def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
                 ) -> np.ndarray:
@@ -54,14 +58,17 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         voter_points = points[voters]
         with torch.inference_mode():
             at = torch.from_numpy(voters).to(self.device)
-            offsets = self.centre_head(features[at], torch.from_numpy(np.ascontiguousarray(normals[voters])).to(self.device))
+            offsets, errors = self.centre_head.votes(
+                features[at], torch.from_numpy(np.ascontiguousarray(normals[voters])).to(self.device))
         votes = voter_points.astype(np.float64) + offsets.cpu().numpy().astype(np.float64)
-        centres = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours, threads)
+        centres, spread = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours, threads,
+                                          errors.cpu().numpy().astype(np.float64))
         if len(voters) < len(points):
             nearest = cKDTree(voter_points).query(points, workers=threads)[1]
-            centres = centres[nearest]
-        self.last_centres = centres
-        wrench = vote_wrench(points, normals, self.last_centres, config.wrench_definition)
+            centres, spread = centres[nearest], spread[nearest]
+        self.last_centres, self.last_spread = centres, spread
+        wrench = vote_wrench(points, normals, centres, config.wrench_definition,
+                             spread * config.spread_scale if config.spread_scale > 0 else None, config.spread_draws)
         return super().quality(points, normals, features, channel_scores) * wrench
 
 
