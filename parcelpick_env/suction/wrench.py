@@ -34,37 +34,54 @@ def wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.ndarray,
                   config: SuctionConfig) -> np.ndarray:
     """(N,) wrench score for contacts ``points`` with outward ``normals`` on bodies centred at ``centres``
     (the COM for ``"paper"``, the surface centroid for the SuctionNet models; the scorer chooses)."""
-    return _scores_of_torques(np.cross(centres - points, _unit_weight(config)), normals, config)
+    torque = np.cross(centres - points, _unit_weight(config))
+    return _scores(*(np.sum(torque * axis, axis=1) for axis in _frame_axes(normals, config)), normals, config)
 
 
 def expected_wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, spread: np.ndarray,
                            draws: np.ndarray, config: SuctionConfig) -> np.ndarray:
     """(N,) mean of ``wrench_scores`` over centres moved horizontally by ``spread * draws[k]``: the score expected
-    when each centre is only known to within ``spread`` (N,) metres per axis, ``draws`` (K, 2) being samples of
-    the unit error. A centre's shift adds its own cross product with the weight to the torque, so the K torques are
-    one broadcast sum, not K calls."""
+    when each centre is known to within ``spread`` (N,) metres an axis, ``draws`` (K, 2) being samples of the unit
+    error. A centre's shift adds its own cross product with the weight to the torque, so each torque component the
+    score reads is the unshifted one plus ``spread`` times a (K, N) product: no K calls, no (K, N, 3) torques."""
     weight = _unit_weight(config)
-    shifts = np.cross(np.column_stack([draws, np.zeros(len(draws))]), weight)  # (K, 3) torque of a unit shift
-    torques = np.cross(centres - points, weight)[None] + np.asarray(spread)[None, :, None] * shifts[:, None, :]
-    return _scores_of_torques(torques, normals, config).mean(axis=0, dtype=np.float64).astype(np.float32)
+    torque = np.cross(centres - points, weight)
+    shifts = np.cross(np.column_stack([draws, np.zeros(len(draws))]), weight)  # (K, 3): torque of a unit shift
+    spread = np.asarray(spread, dtype=np.float64)
+    components = []
+    for axis in _frame_axes(normals, config):
+        # the shifts' torques are horizontal (a horizontal lever times a vertical weight): two outer products,
+        # in place from here (fresh (K, N) temporaries cost more than the arithmetic; a BLAS matmul this thin
+        # waits on its threads when the cores are busy)
+        component = np.multiply.outer(shifts[:, 0], axis[:, 0])
+        component += np.multiply.outer(shifts[:, 1], axis[:, 1])
+        component *= spread
+        component += np.sum(torque * axis, axis=1)
+        components.append(component)
+    return _scores(*components, normals, config).mean(axis=0, dtype=np.float64).astype(np.float32)
 
 
 def _unit_weight(config: SuctionConfig) -> np.ndarray:
     return np.array([0.0, 0.0, -config.unit_mass * config.gravity])
 
 
-def _scores_of_torques(torque: np.ndarray, normals: np.ndarray, config: SuctionConfig) -> np.ndarray:
-    """(..., N) float32 scores of gravity torques (..., N, 3) about contacts with ``normals`` (N, 3)."""
+def _frame_axes(normals: np.ndarray, config: SuctionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The two axes of each contact's SuctionNet frame whose torque components ``config``'s score reads: (x, y)
+    for the label-time wrench, the bending axes (y, z) for the others (x is the normal, so the torque's part
+    orthogonal to it, which ``"paper"`` bends by, is (t_y, t_z))."""
+    x, y, z = suctionnet_frames(normals)
+    return (x, y) if config.wrench_model == "suctionnet_label" else (y, z)
+
+
+def _scores(t_a: np.ndarray, t_b: np.ndarray, normals: np.ndarray, config: SuctionConfig) -> np.ndarray:
+    """(..., N) float32 scores of gravity's torque from its (..., N) components on ``_frame_axes``."""
     if config.wrench_model == "paper":
-        torque = torque - np.sum(torque * normals, axis=-1, keepdims=True) * normals
-        torque_ratio = np.minimum(1.0, np.linalg.norm(torque, axis=-1) / config.torque_threshold)
+        torque_ratio = np.minimum(1.0, np.hypot(t_a, t_b) / config.torque_threshold)
         # -n . (0, 0, -1) = n_z
         angle = np.arccos(np.clip(normals[:, 2], -1.0, 1.0))
         return ((1.0 - torque_ratio) * (1.0 - angle / np.pi)).astype(np.float32)
-    x, y, z = suctionnet_frames(normals)
-    t_x, t_y, t_z = (np.sum(torque * axis, axis=-1) for axis in (x, y, z))
     if config.wrench_model == "suctionnet":
-        load = np.maximum(np.abs(t_y), np.abs(t_z)) / config.torque_threshold
-    else:  # suctionnet_label
-        load = np.hypot(t_x, t_y) / (np.sqrt(2.0) * config.torque_threshold)
+        load = np.maximum(np.abs(t_a), np.abs(t_b)) / config.torque_threshold
+    else:  # suctionnet_label: (t_x, t_y)
+        load = np.hypot(t_a, t_b) / (np.sqrt(2.0) * config.torque_threshold)
     return (1.0 - np.minimum(1.0, load)).astype(np.float32)
