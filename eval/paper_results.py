@@ -23,7 +23,8 @@ TABLE_V: dict[tuple[str, str], tuple[float, float]] = {
 METHOD_LABELS: dict[str, str] = {
     "oracle": "Oracle (privileged ceiling)",
     "diffusion": "Diffusion-Suction", "diffusion_vote": "Diffusion-Suction + centre votes",
-    "diffusion_hold": "Diffusion-Suction + hold check", "cao": "Cao et al.", "normal_std": "Normal-STD",
+    "diffusion_hold": "Diffusion-Suction + hold check",
+    "diffusion_vote_hold": "Diffusion-Suction + centre votes + hold check", "cao": "Cao et al.", "normal_std": "Normal-STD",
     "dexnet": "Dex-Net 3.0", "random": "Random", "sb3": "PPO (SB3)",
 }
 

@@ -28,6 +28,7 @@ SHIPPED: dict[str, tuple[str, ...]] = {
     "diffusion": ("policies/diffusion/checkpoints/diffusion_suction.pt",),
     "diffusion_vote": ("policies/diffusion/checkpoints/centre_vote.pt",),  # the head; the model is diffusion's
     "diffusion_hold": ("policies/hold/checkpoints/hold.pt",),  # the hold check; the model is diffusion's
+    "diffusion_vote_hold": ("policies/hold/checkpoints/hold_vote.pt",),  # its hold check; the head is diffusion_vote's
     "cao": ("policies/cao/checkpoint.pt",),
     "dexnet": ("policies/dexnet/checkpoint.pt",),
     "sb3": ("policies/sb3/ppo_pixel.safetensors", "policies/sb3/ppo_pixel.zip"),  # the first that exists

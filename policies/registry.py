@@ -12,6 +12,7 @@ _LAZY: dict[str, str] = {
     "diffusion": "policies.diffusion.policy:DiffusionSuctionPolicy",
     "diffusion_vote": "policies.diffusion.vote_policy:DiffusionCentreVotePolicy",  # + centre votes (not in the paper)
     "diffusion_hold": "policies.hold.policy:DiffusionHoldPolicy",  # + the learnt hold check (not in the paper)
+    "diffusion_vote_hold": "policies.hold.vote_policy:DiffusionVoteHoldPolicy",  # + both (not in the paper)
     "normal_std": "policies.normal_std:NormalStdPolicy",
     "dexnet": "policies.dexnet.policy:DexNetPolicy",
     "cao": "policies.cao.policy:CaoPolicy",

@@ -170,15 +170,23 @@ def test_collect_rehearses_only_picks_the_cell_would_take():
     assert collect.rehearsal_candidates(passed, np.zeros(5, dtype=bool), 6).tolist() == [0, 2, 3, 4]
 
 
-def test_the_policy_orders_its_first_candidates_by_the_hold_probability(tmp_path):
+@pytest.fixture(scope="module")
+def stacked_view():
+    """A 6-parcel stacked view of the env: the observation and info a policy gets."""
     from parcelpick_env.camera.config import CameraConfig
     from parcelpick_env.envs.parcel_pick import ParcelPickEnv
-    from policies.diffusion.policy import DiffusionSuctionPolicy
 
     env = ParcelPickEnv(num_parcels=6, layout="stacked", object_set="rectangular", num_points=1024,
                         camera=CameraConfig(width=160, height=120))
     obs, info = env.reset(seed=1)
     env.close()
+    return obs, info
+
+
+def test_the_policy_orders_its_first_candidates_by_the_hold_probability(stacked_view):
+    from policies.diffusion.policy import DiffusionSuctionPolicy
+
+    obs, info = stacked_view
     model = build_model(DiffusionConfig.tiny())
     inner = DiffusionSuctionPolicy(model=model)
     inner.reset(0)
@@ -198,3 +206,35 @@ def test_the_policy_orders_its_first_candidates_by_the_hold_probability(tmp_path
     with pytest.raises(ValueError, match="rerank"):
         DiffusionHoldPolicy(model=model, hold_net=logistic({}), rerank=0)
 
+
+
+def test_the_vote_hold_policy_orders_the_votes_ranking_by_the_hold_probability(stacked_view):
+    from centre_heads import constant_head
+
+    from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
+    from policies.diffusion.policy import DiffusionSuctionPolicy
+    from policies.diffusion.vote_policy import DiffusionCentreVotePolicy
+    from policies.hold.vote_policy import DEFAULT_VOTE_HOLD, DiffusionVoteHoldPolicy
+    from policies.registry import make_policy
+
+    obs, info = stacked_view
+    model, _ = load_model(DEFAULT_CHECKPOINT)  # trained: its scores are not all clamped to 0, as a fresh net's are
+    head = constant_head(model.encode_width, (0.03, 0.0, -0.05))  # 3 cm of lever everywhere: the ranking moves
+
+    def ranking(policy, top_k=30):
+        policy.reset(0)
+        return policy.predict(obs, info, top_k=top_k)
+
+    base = ranking(DiffusionCentreVotePolicy(model=model, centre_head=head, voters=0))
+    assert not np.array_equal(base.points, ranking(DiffusionSuctionPolicy(model=model)).points)  # the votes act
+    same = ranking(DiffusionVoteHoldPolicy(model=model, centre_head=head, voters=0, hold_net=logistic({}), rerank=20))
+    np.testing.assert_array_equal(same.points, base.points)  # a constant hold keeps the votes' order
+    high = ranking(DiffusionVoteHoldPolicy(model=model, centre_head=head, voters=0,
+                                           hold_net=logistic({"below_top": -200.0}), rerank=20), top_k=25)
+    assert high.points[0, 2] == pytest.approx(base.points[:20, 2].max(), abs=1e-6)  # the highest of the votes' 20
+    np.testing.assert_array_equal(high.points[20:], base.points[20:25])  # the rest in the votes' order
+    shipped = make_policy("diffusion_vote_hold")  # the shipped model and head, with the hold check taught on them
+    shipped_hold, _ = load_hold(DEFAULT_VOTE_HOLD)
+    assert isinstance(shipped, DiffusionVoteHoldPolicy)
+    assert all(torch.equal(a, b) for a, b in zip(shipped.hold_net.state_dict().values(),
+                                                 shipped_hold.state_dict().values()))

@@ -12,8 +12,8 @@ from eval.report.variants import ABLATION_SEEDS, ABLATION_TRAIN_ARGS
 from parcelpick_env.parallel import BACKENDS
 from parcelpick_env.suction.quality import AP_DEFINITIONS
 
-DEFAULT_POLICIES: tuple[str, ...] = ("oracle", "diffusion", "diffusion_vote", "diffusion_hold", "cao", "normal_std",
-                                     "dexnet", "random", "sb3")
+DEFAULT_POLICIES: tuple[str, ...] = ("oracle", "diffusion", "diffusion_vote", "diffusion_hold", "diffusion_vote_hold",
+                                     "cao", "normal_std", "dexnet", "random", "sb3")
 AP_METRICS: tuple[str, ...] = ("AP", "AP0.8", "AP0.4")  # the paper's Table II columns, in its order
 DIFFUSION = "diffusion"
 ORACLE = "oracle"  # under eval.ap the registered oracle submits the best stored labels: the label oracle

@@ -29,12 +29,13 @@ class DiffusionHoldPolicy(DiffusionSuctionPolicy):
     probability; ``last_hold`` holds the probabilities in the returned order (1 for the candidates after them)."""
 
     name = "diffusion_hold"
+    default_hold: str = DEFAULT_HOLD  # the hold check taught on this policy's own picks
 
     def __init__(self, checkpoint: str | os.PathLike | None = None, hold: str | os.PathLike | None = None,
                  hold_net: HoldNet | None = None, rerank: int = RERANK, **kwargs: Any) -> None:
-        """``hold``: the hold check's checkpoint (default: the shipped one); ``hold_net`` an in-memory one (tests)."""
+        """``hold``: the hold check's checkpoint (default: ``default_hold``); ``hold_net`` an in-memory one (tests)."""
         require_int("DiffusionHoldPolicy", "rerank", rerank, lo=1)
-        self.hold_net = hold_net if hold_net is not None else load_hold(hold or DEFAULT_HOLD)[0]
+        self.hold_net = hold_net if hold_net is not None else load_hold(hold or self.default_hold)[0]
         self.rerank = rerank
         self.last_hold = np.zeros(0, dtype=np.float32)
         super().__init__(checkpoint=checkpoint, **kwargs)
