@@ -57,7 +57,8 @@ class CentreVoteConfig:
     wrench_definition: str = "suctionnet"  # whose wrench formula re-weights the score (VOTE_DEFINITIONS)
     spread_hidden: tuple[int, ...] = (128, 128)  # MLP widths of the votes' predicted error, on the same inputs
     # The wrench is the mean over centres moved by spread_scale times the averaged votes' typical error (0: about
-    # the averaged centre alone), sampled at spread_draws fixed draws (0.5, 1, 1.5 and 2 tried on validation)
+    # the averaged centre alone), sampled at spread_draws fixed draws (0.5 to 3 tried on validation, 0.75-1.25
+    # level; docs/training.md, 'The vote's spread')
     spread_scale: float = 1.0
     spread_draws: int = 16
 
