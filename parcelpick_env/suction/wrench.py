@@ -35,7 +35,8 @@ def wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.ndarray,
     """(N,) wrench score for contacts ``points`` with outward ``normals`` on bodies centred at ``centres``
     (the COM for ``"paper"``, the surface centroid for the SuctionNet models; the scorer chooses)."""
     torque = np.cross(centres - points, _unit_weight(config))
-    return _scores(*(np.sum(torque * axis, axis=1) for axis in _frame_axes(normals, config)), normals, config)
+    a, b = _frame_axes(normals, config)
+    return _scores(np.sum(torque * a, axis=1), np.sum(torque * b, axis=1), normals, config)
 
 
 def expected_wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, spread: np.ndarray,
@@ -48,17 +49,18 @@ def expected_wrench_scores(points: np.ndarray, normals: np.ndarray, centres: np.
     torque = np.cross(centres - points, weight)
     shifts = np.cross(np.column_stack([draws, np.zeros(len(draws))]), weight)  # (K, 3): torque of a unit shift
     spread = np.asarray(spread, dtype=np.float64)
-    components = []
-    for axis in _frame_axes(normals, config):
+
+    def component(axis: np.ndarray) -> np.ndarray:
         # the shifts' torques are horizontal (a horizontal lever times a vertical weight): two outer products,
         # in place from here (fresh (K, N) temporaries cost more than the arithmetic; a BLAS matmul this thin
         # waits on its threads when the cores are busy)
-        component = np.multiply.outer(shifts[:, 0], axis[:, 0])
-        component += np.multiply.outer(shifts[:, 1], axis[:, 1])
-        component *= spread
-        component += np.sum(torque * axis, axis=1)
-        components.append(component)
-    return _scores(*components, normals, config).mean(axis=0, dtype=np.float64).astype(np.float32)
+        out = np.multiply.outer(shifts[:, 0], axis[:, 0])
+        out += np.multiply.outer(shifts[:, 1], axis[:, 1])
+        out *= spread
+        out += np.sum(torque * axis, axis=1)
+        return out
+    a, b = _frame_axes(normals, config)
+    return _scores(component(a), component(b), normals, config).mean(axis=0, dtype=np.float64).astype(np.float32)
 
 
 def _unit_weight(config: SuctionConfig) -> np.ndarray:
