@@ -207,7 +207,6 @@ def test_the_policy_orders_its_first_candidates_by_the_hold_probability(stacked_
         DiffusionHoldPolicy(model=model, hold_net=logistic({}), rerank=0)
 
 
-
 def test_the_vote_hold_policy_orders_the_votes_ranking_by_the_hold_probability(stacked_view):
     from centre_heads import constant_head
 

@@ -2,8 +2,8 @@
 (``policies.diffusion.vote_policy``), and the hold check orders the first few (``policies.hold.policy``), taught on
 the vote policy's own picks rehearsed on the cell's twin. Not in the paper.
 
-The votes lead offline and the hold check in closed loop (docs/hold_check.md); this is the one policy that
-carries both, so one Diffusion-Suction variant can be read in both tables."""
+The votes lead offline and the hold check in closed loop (docs/hold_check.md); this policy carries both, so one
+Diffusion-Suction variant can be read in both tables."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ DEFAULT_VOTE_HOLD = os.path.join(os.path.dirname(__file__), "checkpoints", "hold
 
 class DiffusionVoteHoldPolicy(DiffusionHoldPolicy, DiffusionCentreVotePolicy):
     """``DiffusionHoldPolicy`` over ``DiffusionCentreVotePolicy``'s ranking: it takes both parents' arguments
-    (``hold``, ``rerank``; ``centre_vote``, ``voters``, ``cluster_neighbours``)."""
+    (``hold``, ``rerank``; ``centre_vote``, ``voters``, ``cluster_neighbours``, ``spread_scale``)."""
 
     name = "diffusion_vote_hold"
     default_hold = DEFAULT_VOTE_HOLD
