@@ -126,7 +126,7 @@ def test_the_expected_wrench_averages_the_score_over_the_centres_error():
     centres, spread = points + rng.normal(size=(200, 3)) * 0.03, rng.uniform(0.0, 0.03, 200)
     np.testing.assert_allclose(vote_wrench(points, normals, centres, "paper", spread=np.zeros(200)),
                                vote_wrench(points, normals, centres, "paper"), atol=1e-7)
-    for definition in ("suctionnet", "paper"):
+    for definition in ("suctionnet", "paper", "paper_compat"):
         loop = np.mean([vote_wrench(points, normals, centres + np.column_stack([spread * dx, spread * dy,
                                                                                  np.zeros(200)]), definition)
                         for dx, dy in spread_draws(8)], axis=0)
@@ -305,3 +305,8 @@ def test_the_shipped_head_reads_the_shipped_model_and_refuses_another(tmp_path):
     corrupt.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="corrupt"):
         DiffusionCentreVotePolicy(centre_vote=corrupt)
+    older = tmp_path / "v1.pt"  # a head from before the spread: refused by name, not loaded without it
+    payload = torch.load(DEFAULT_CENTRE_VOTE, weights_only=True)
+    torch.save(dict(payload, version=1), older)
+    with pytest.raises(ValueError, match="format version 1"):
+        DiffusionCentreVotePolicy(centre_vote=older)
