@@ -120,12 +120,9 @@ class CentreVoteHead(nn.Module):
         """(...,) log of each vote's error per horizontal axis, in ``LEVER_UNIT``, from prepared ``inputs``."""
         return self.spread((inputs - self.input_mean) / self.input_std).squeeze(-1)
 
-    def forward(self, features: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
-        """(..., 3) offsets in metres for per-point ``features`` (..., F) and unit ``normals`` (..., 3)."""
-        return self.forward_units(inputs_of(features, normals, self.in_features)) * LEVER_UNIT
-
-    def votes(self, features: torch.Tensor, normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(..., 3) offsets and (...,) predicted errors per horizontal axis, both in metres."""
+    def forward(self, features: torch.Tensor, normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., 3) offsets and (...,) their predicted errors per horizontal axis, both in metres, for per-point
+        ``features`` (..., F) and unit ``normals`` (..., 3)."""
         inputs = inputs_of(features, normals, self.in_features)
         return self.forward_units(inputs) * LEVER_UNIT, torch.exp(self.log_spread_units(inputs)) * LEVER_UNIT
 

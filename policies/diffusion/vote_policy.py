@@ -58,7 +58,7 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         voter_points = points[voters]
         with torch.inference_mode():
             at = torch.from_numpy(voters).to(self.device)
-            offsets, errors = self.centre_head.votes(
+            offsets, errors = self.centre_head(
                 features[at], torch.from_numpy(np.ascontiguousarray(normals[voters])).to(self.device))
         votes = voter_points.astype(np.float64) + offsets.cpu().numpy().astype(np.float64)
         centres, spread = cluster_centres(votes, config.cluster_radius, config.cluster_neighbours, threads,
