@@ -105,8 +105,8 @@ def fit_spread(head: CentreVoteHead, inputs: torch.Tensor, targets: torch.Tensor
     if len(inputs) == 0:
         raise ValueError("no parcel points to learn the votes' spread from")
     with torch.inference_mode():
-        residuals = torch.cat([head.forward_units(inputs[i:i + 65536]) - targets[i:i + 65536]
-                               for i in range(0, len(inputs), 65536)])[:, :2].clone()
+        chunks = [slice(i, i + 65536) for i in range(0, len(inputs), 65536)]
+        residuals = torch.cat([head.forward_units(inputs[c]) - targets[c] for c in chunks])[:, :2].clone()
 
     def loss(batch: torch.Tensor) -> torch.Tensor:
         variance = torch.exp(2.0 * head.log_spread_units(inputs[batch]))[:, None].expand(-1, 2)
