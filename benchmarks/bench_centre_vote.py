@@ -7,7 +7,8 @@ on the same clouds, and the votes alone (head, clustering, wrench). Prints a mar
 The clouds are synthetic piles (``policies.diffusion.synthetic``), so the figures do not depend on a dataset; with
 ``--data``, also the first stored scene's cloud (a real pile, whose votes crowd less than a synthetic one's). With
 ``--views K``, the policies decide on K of the env's observations, decoding at the depth candidates, with the
-votes cast at every decoded point, without the expectation over the votes' spread, and as shipped.
+votes cast at every decoded point, without the expectation over the votes' spread, without vote segments, and as
+shipped.
 """
 
 from __future__ import annotations
@@ -37,10 +38,13 @@ def bench_views(count: int, repeats: int) -> None:
                 "diffusion_vote, voters=0 (every decoded point)": DiffusionCentreVotePolicy(voters=0,
                                                                                             record_trajectory=False),
                 "diffusion_vote, spread_scale=0 (the wrench about the averaged centre)": DiffusionCentreVotePolicy(
-                    spread_scale=0.0, record_trajectory=False)}
+                    spread_scale=0.0, record_trajectory=False),
+                "diffusion_vote, segment_radius=0 (the votes' centres, no vote segments)": DiffusionCentreVotePolicy(
+                    segment_radius=0.0, record_trajectory=False)}
     shipped = DiffusionCentreVotePolicy(record_trajectory=False)
     config = shipped.centre_head.config
-    policies[f"diffusion_vote, voters={config.voters}, spread_draws={config.spread_draws} (shipped)"] = shipped
+    policies[f"diffusion_vote, voters={config.voters}, spread_draws={config.spread_draws}, "
+             f"segment_radius={config.segment_radius:g} (shipped)"] = shipped
     times: dict[str, list[float]] = {name: [] for name in policies}
     for obs, info in views:
         samples = interleaved_times({name: (lambda p=policy: p.predict(obs, info)) for name, policy in policies.items()},

@@ -8,6 +8,8 @@ sits right above the centre of mass. Nothing here sees ground truth.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -26,15 +28,42 @@ def segment_surfaces(points: np.ndarray, normals: np.ndarray, radius: float = 0.
     normals = np.asarray(normals, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
         raise ValueError(f"points and normals must both be (N, 3), got {points.shape} and {normals.shape}")
-    if not radius > 0 or not -1.0 <= min_cos <= 1.0:
-        raise ValueError(f"need radius > 0 and -1 <= min_cos <= 1, got {radius}, {min_cos}")
+    if not -1.0 <= min_cos <= 1.0:
+        raise ValueError(f"need -1 <= min_cos <= 1, got {min_cos}")
+    return radius_components(points, radius, lambda a, b: np.einsum("ij,ij->i", normals[a], normals[b]) > min_cos)
+
+
+def radius_components(points: np.ndarray, radius: float,
+                      agree: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """(N,) int64 labels: connected components of the graph joining the points closer than ``radius`` where
+    ``agree(a, b)`` (a boolean mask over the index pairs ``a``, ``b``; None: every such pair) holds."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    if not radius > 0:
+        raise ValueError(f"need radius > 0, got {radius}")
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
-    pairs = pairs[np.einsum("ij,ij->i", normals[pairs[:, 0]], normals[pairs[:, 1]]) > min_cos]
+    if agree is not None:
+        pairs = pairs[agree(pairs[:, 0], pairs[:, 1])]
     graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     return connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+def segment_means(values: np.ndarray, labels: np.ndarray, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(K, D) float64 mean of ``values`` (N, D) over each label 0..K-1 (NaN where a label has none), and (K,) how
+    many rows each mean is of; K is ``count``, or one past the largest label."""
+    values = np.asarray(values, dtype=np.float64)
+    labels = np.asarray(labels, dtype=np.int64)
+    if values.ndim != 2 or labels.shape != (len(values),):
+        raise ValueError(f"need (N, D) values and one label per row, got {values.shape} and {labels.shape}")
+    k = (int(labels.max()) + 1 if len(labels) else 0) if count is None else int(count)
+    counts = np.bincount(labels, minlength=k)
+    sums = np.stack([np.bincount(labels, values[:, d], minlength=k) for d in range(values.shape[1])], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums.reshape(k, values.shape[1]) / counts[:, None], counts
 
 
 def offsets_to_centroids(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -46,10 +75,7 @@ def offsets_to_centroids(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
         raise ValueError(f"need one label per point, got {labels.shape} for {len(points)} points")
     if len(points) == 0:
         return np.zeros((0, 3))
-    k = int(labels.max()) + 1
-    counts = np.bincount(labels, minlength=k)[:, None]
-    centroids = np.stack([np.bincount(labels, points[:, d], minlength=k) for d in range(3)], axis=1) / counts
-    return centroids[labels] - points
+    return segment_means(points, labels)[0][labels] - points
 
 
 def segment_levers(points: np.ndarray, labels: np.ndarray, offsets: np.ndarray | None = None) -> np.ndarray:

@@ -157,7 +157,13 @@ def test_the_spread_draws_sample_a_unit_normal_the_same_way_every_time():
                                              ({"spread_hidden": ()}, "spread_hidden"),
                                              ({"spread_scale": -1.0}, "spread_scale"),
                                              ({"spread_draws": 0}, "spread_draws"),
-                                             ({"spread_draws": 6}, "spread_draws")])
+                                             ({"spread_draws": 6}, "spread_draws"),
+                                             ({"segment_radius": -0.01}, "segment_radius"),
+                                             ({"segment_radius": float("nan")}, "segment_radius"),
+                                             ({"segment_vote_gap": 0.0}, "segment_vote_gap"),
+                                             ({"segment_up_cos": 1.5}, "segment_up_cos"),
+                                             ({"segment_min_points": 0}, "segment_min_points"),
+                                             ({"segment_floor_margin": -0.001}, "segment_floor_margin")])
 def test_bad_vote_configs_name_the_field(fields, message):
     with pytest.raises(ValueError, match=message):
         CentreVoteConfig(**fields)

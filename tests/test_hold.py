@@ -237,3 +237,6 @@ def test_the_vote_hold_policy_orders_the_votes_ranking_by_the_hold_probability(s
     assert isinstance(shipped, DiffusionVoteHoldPolicy)
     assert all(torch.equal(a, b) for a, b in zip(shipped.hold_net.state_dict().values(),
                                                  shipped_hold.state_dict().values()))
+    assert shipped.centre_head.config.segment_radius == 0  # without vote segments, where its hold check learnt
+    assert make_policy("diffusion_vote").centre_head.config.segment_radius > 0
+    assert make_policy("diffusion_vote_hold", segment_radius=0.01).centre_head.config.segment_radius == 0.01

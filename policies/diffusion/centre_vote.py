@@ -61,6 +61,18 @@ class CentreVoteConfig:
     # level; docs/training.md, 'The vote's spread')
     spread_scale: float = 1.0
     spread_draws: int = 16
+    # Vote segments (vote_segments.py): decoded points within segment_radius whose voted centres lie within
+    # segment_vote_gap are one parcel, centred on its up-facing points (normal z >= segment_up_cos; at least
+    # segment_min_points of them, else the votes' centre stands), with the votes' error.
+    # Only points segment_floor_margin above the bin's floor and segment_wall_margin in from its walls are segmented.
+    # segment_radius 0: the votes' centres alone (chosen on the held-out-asset validation split, docs/training.md,
+    # 'Vote segments')
+    segment_radius: float = 0.01  # m
+    segment_vote_gap: float = 0.08  # m
+    segment_up_cos: float = 0.9
+    segment_min_points: int = 5
+    segment_floor_margin: float = 0.003  # m: six times the camera's depth noise, under the thinnest envelope (5 mm)
+    segment_wall_margin: float = 0.01  # m
 
     def __post_init__(self) -> None:
         owner = type(self).__name__
@@ -70,10 +82,16 @@ class CentreVoteConfig:
                     f"{name} must be a non-empty tuple of widths, got {widths!r}")
             for width in widths:
                 require_int(owner, f"{name} widths", width, lo=1)
-        require(self.spread_scale >= 0, owner, f"spread_scale must be >= 0, got {self.spread_scale!r}")
+        for name in ("spread_scale", "segment_radius", "segment_floor_margin", "segment_wall_margin"):
+            value = getattr(self, name)
+            require(isinstance(value, (int, float)) and bool(np.isfinite(value)) and value >= 0, owner,
+                    f"{name} must be a finite number >= 0, got {value!r}")
+        require(-1.0 <= self.segment_up_cos <= 1.0, owner,
+                f"segment_up_cos must be in [-1, 1], got {self.segment_up_cos!r}")
+        require_int(owner, "segment_min_points", self.segment_min_points, lo=1)
         require_int(owner, "spread_draws", self.spread_draws, lo=4)
         require(self.spread_draws % 4 == 0, owner, f"spread_draws must be a multiple of 4, got {self.spread_draws}")
-        require_positive_numbers(self, ("cluster_radius",))
+        require_positive_numbers(self, ("cluster_radius", "segment_vote_gap"))
         require_int(owner, "cluster_neighbours", self.cluster_neighbours, lo=1)
         require_int(owner, "voters", self.voters, lo=0)
         require_choice(owner, "wrench_definition", self.wrench_definition, VOTE_DEFINITIONS)

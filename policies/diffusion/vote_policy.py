@@ -5,34 +5,41 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from policies.base import Candidates
 from policies.diffusion.centre_vote import (DEFAULT_CENTRE_VOTE, CentreVoteHead, cluster_centres, file_sha256,
                                             load_centre_vote, vote_wrench)
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT
 from policies.diffusion.policy import DiffusionSuctionPolicy
+from policies.diffusion.vote_segments import bin_interior, top_centres, vote_segments
+from policies.observation import workspace
 
 
 class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
     """``DiffusionSuctionPolicy`` whose ranking score is its channels' product times the wrench score about each
     point's voted centre (each vote averaged with its ``cluster_neighbours`` nearest within ``cluster_radius``, by
     their predicted errors; votes cast at ``voters`` of the decoded points, the others taking their nearest voter's
-    centre), expected over that centre's error."""
+    centre; then, where the votes segment a parcel with a visible top, that top's centroid: ``vote_segments.py``),
+    expected over that centre's error."""
 
     name = "diffusion_vote"
 
     def __init__(self, checkpoint: str | os.PathLike | None = None, centre_vote: str | os.PathLike | None = None,
                  centre_head: CentreVoteHead | None = None, voters: int | None = None,
-                 cluster_neighbours: int | None = None, spread_scale: float | None = None, **kwargs: Any) -> None:
+                 cluster_neighbours: int | None = None, spread_scale: float | None = None,
+                 segment_radius: float | None = None, **kwargs: Any) -> None:
         """``centre_vote``: the head's checkpoint (default: the shipped one), which must have been trained on
         ``checkpoint``'s features; ``centre_head`` instead uses an in-memory head (tests, with ``model=``).
-        ``voters``, ``cluster_neighbours``, ``spread_scale``: in place of the head's stored ``CentreVoteConfig``
-        values (they act at inference only; ``--policy-arg voters=0`` votes at every decoded point,
-        ``spread_scale=0`` takes the wrench about the averaged centre alone)."""
+        ``voters``, ``cluster_neighbours``, ``spread_scale``, ``segment_radius``: in place of the head's stored
+        ``CentreVoteConfig`` values (they act at inference only; ``--policy-arg voters=0`` votes at every decoded
+        point, ``spread_scale=0`` takes the wrench about the averaged centre alone, ``segment_radius=0`` the votes'
+        centres without vote segments)."""
         super().__init__(checkpoint=checkpoint, **kwargs)
         if centre_head is None:
             encoder = checkpoint or DEFAULT_CHECKPOINT
@@ -43,12 +50,19 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         if centre_head.in_features != width:
             raise ValueError(f"the centre vote head reads {centre_head.in_features} features, the model gives {width}")
         overrides = {k: v for k, v in (("voters", voters), ("cluster_neighbours", cluster_neighbours),
-                                       ("spread_scale", spread_scale)) if v is not None}
+                                       ("spread_scale", spread_scale), ("segment_radius", segment_radius))
+                     if v is not None}
         if overrides:
             centre_head.config = dataclasses.replace(centre_head.config, **overrides)
         self.centre_head = centre_head.to(self.device).eval()
-        self.last_centres: np.ndarray | None = None  # (M, 3) voted and averaged centres of the last decoded points
+        self.last_centres: np.ndarray | None = None  # (M, 3) the centres the last decoded points were scored about
         self.last_spread: np.ndarray | None = None  # (M,) their typical predicted error per horizontal axis (m)
+        self._bin: np.ndarray | None = None  # the bin's inner box of the observation being decided on (None: none)
+
+    def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
+                top_k: int = 50) -> Candidates:
+        self._bin = workspace(info, "Diffusion-Suction's vote segments")  # what quality() segments within
+        return super().predict(obs, info, top_k)
 
     def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
                 ) -> np.ndarray:
@@ -66,6 +80,13 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         if len(voters) < len(points):
             nearest = cKDTree(voter_points).query(points, workers=threads)[1]
             centres, spread = centres[nearest], spread[nearest]
+        if config.segment_radius > 0:
+            inside = np.flatnonzero(bin_interior(points, self._bin, config.segment_floor_margin,
+                                                 config.segment_wall_margin))
+            labels = vote_segments(points[inside], centres[inside], config.segment_radius, config.segment_vote_gap)
+            tops, found = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
+                                      config.segment_min_points)
+            centres[inside[found]] = tops[found]
         self.last_centres, self.last_spread = centres, spread
         wrench = vote_wrench(points, normals, centres, config.wrench_definition,
                              spread * config.spread_scale if config.spread_scale > 0 else None, config.spread_draws)

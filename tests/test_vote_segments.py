@@ -1,0 +1,139 @@
+"""Vote segments on clouds with known answers: the votes split what geometry joins, the surface what votes join,
+and a segment's visible top fixes a centre that every vote misses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from centre_heads import constant_head
+from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
+from policies.diffusion.vote_policy import DiffusionCentreVotePolicy
+from policies.diffusion.vote_segments import bin_interior, top_centres, vote_segments
+from policies.surface_segments import radius_components, segment_means
+
+UP = (0.0, 0.0, 1.0)
+
+
+def _plate(x0, x1, y0, y1, z, spacing=0.005):
+    """A horizontal grid of points over [x0, x1) x [y0, y1) at height z."""
+    u, v = np.meshgrid(np.arange(x0, x1 - 1e-9, spacing), np.arange(y0, y1 - 1e-9, spacing))
+    return np.c_[u.ravel(), v.ravel(), np.full(u.size, z)]
+
+
+def test_touching_tops_are_split_by_their_votes_and_joined_without_them():
+    a, b = _plate(0.0, 0.10, 0.0, 0.10, 0.05), _plate(0.10, 0.20, 0.0, 0.10, 0.05)  # one flat surface, no gap
+    points = np.r_[a, b]
+    own = np.r_[np.tile((0.05, 0.05, 0.0), (len(a), 1)), np.tile((0.15, 0.05, 0.0), (len(b), 1))]
+    labels = vote_segments(points, own, radius=0.01, vote_gap=0.08)
+    assert len(np.unique(labels[: len(a)])) == 1 and len(np.unique(labels[len(a):])) == 1
+    assert labels[0] != labels[-1]  # centres 10 cm apart: beyond the gap
+    assert len(np.unique(vote_segments(points, own, radius=0.01, vote_gap=0.12))) == 1
+    assert len(np.unique(vote_segments(points, np.zeros_like(points), radius=0.01, vote_gap=0.08))) == 1
+
+
+def test_a_step_splits_tops_whose_votes_agree():
+    low, high = _plate(0.0, 0.10, 0.0, 0.10, 0.0), _plate(0.10, 0.20, 0.0, 0.10, 0.03)  # a 3 cm step
+    labels = vote_segments(np.r_[low, high], np.zeros((len(low) + len(high), 3)), radius=0.01, vote_gap=0.08)
+    assert len(np.unique(labels)) == 2
+
+
+def test_a_large_mailer_whose_votes_drift_is_one_segment_centred_on_its_top():
+    """40 x 30 cm: every vote misses the centre by up to 4 cm, drifting across the face; the top's centroid is exact."""
+    points = _plate(-0.20, 0.20, -0.15, 0.15, 0.02)
+    centre = points.mean(axis=0)
+    votes = centre + np.c_[0.1 * points[:, 0], 0.1 * points[:, 1] + 0.02, np.zeros(len(points))]
+    labels = vote_segments(points, votes, radius=0.01, vote_gap=0.08)
+    assert len(np.unique(labels)) == 1
+    tops, found = top_centres(points, np.tile(UP, (len(points), 1)), labels, up_cos=0.9, min_points=5)
+    assert found.all()
+    np.testing.assert_allclose(tops, np.tile(centre, (len(points), 1)), atol=1e-9)
+
+
+def test_a_top_is_its_up_facing_points_and_too_few_leave_the_votes():
+    top = _plate(0.0, 0.10, 0.0, 0.10, 0.10)
+    side = np.c_[np.full(40, 0.10), np.linspace(0.0, 0.095, 40), np.linspace(0.0, 0.095, 40)]  # a wall below it
+    points = np.r_[top, side]
+    normals = np.r_[np.tile(UP, (len(top), 1)), np.tile((1.0, 0.0, 0.0), (len(side), 1))]
+    labels = np.zeros(len(points), dtype=np.int64)
+    labels[-3:] = 1  # a fragment showing three up-facing points (its normals made up-facing below)
+    normals[-3:] = UP
+    tops, found = top_centres(points, normals, labels, up_cos=0.9, min_points=5)
+    np.testing.assert_allclose(tops[0], top.mean(axis=0), atol=1e-12)  # the wall does not pull the centre down
+    np.testing.assert_allclose(tops[len(top)], top.mean(axis=0), atol=1e-12)
+    assert found[: -3].all() and not found[-3:].any() and np.isnan(tops[-3:]).all()
+    _, found = top_centres(points, normals, labels, up_cos=0.9, min_points=3)
+    assert found.all()
+
+
+def test_segment_means_and_radius_components_on_known_answers():
+    means, counts = segment_means(np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]), np.array([0, 0, 2]), count=4)
+    np.testing.assert_array_equal(counts, [2, 0, 1, 0])
+    np.testing.assert_allclose(means[[0, 2]], [[2.0, 3.0], [5.0, 6.0]])
+    assert np.isnan(means[[1, 3]]).all()
+    row = np.c_[[0.0, 0.009, 0.018, 0.05], np.zeros(4), np.zeros(4)]
+    np.testing.assert_array_equal(radius_components(row, 0.01), [0, 0, 0, 1])
+    np.testing.assert_array_equal(radius_components(row, 0.01, lambda a, b: a != 0), [0, 1, 1, 2])
+    with pytest.raises(ValueError, match="radius"):
+        radius_components(row, 0.0)
+
+
+def test_the_policy_scores_about_the_segments_top_and_without_segments_about_the_votes():
+    model, _ = load_model(DEFAULT_CHECKPOINT)
+    points = _plate(0.0, 0.12, 0.0, 0.08, 0.04).astype(np.float32)
+    normals = np.tile(UP, (len(points), 1)).astype(np.float32)
+    features, channels = torch.zeros(len(points), model.encode_width), np.ones((len(points), 3), dtype=np.float32)
+    offset = (0.0, 0.0, -0.02)  # each point votes 2 cm under itself: the votes spread over the whole plate
+    kwargs = dict(model=model, voters=0, record_trajectory=False)
+    on = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_radius=0.01),
+                                   **kwargs)
+    assert on.centre_head.config.segment_vote_gap == 0.08
+    quality = on.quality(points, normals, features, channels)
+    centre = points.mean(axis=0)
+    np.testing.assert_allclose(on.last_centres, np.tile(centre, (len(points), 1)), atol=1e-6)
+    np.testing.assert_allclose(on.last_spread, 0.01, rtol=1e-5)  # the votes' error stands
+    assert np.argmax(quality) == np.argmin(np.linalg.norm(points[:, :2] - centre[:2], axis=1))  # the middle ranks first
+    off = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_radius=0.01),
+                                    segment_radius=0.0, **kwargs)
+    off.quality(points, normals, features, channels)
+    np.testing.assert_allclose(off.last_centres, points + np.asarray(offset), atol=1e-6)
+
+
+def test_vote_segments_refuse_mismatched_votes_and_a_zero_gap():
+    points = _plate(0.0, 0.02, 0.0, 0.02, 0.0)
+    with pytest.raises(ValueError, match="one voted centre per point"):
+        vote_segments(points, points[:-1], radius=0.01, vote_gap=0.08)
+    with pytest.raises(ValueError, match="vote_gap"):
+        vote_segments(points, points, radius=0.01, vote_gap=0.0)
+
+
+def test_only_points_inside_the_bin_are_segmented():
+    box = np.array([[-0.10, -0.10, 0.0], [0.10, 0.10, 1.0]])
+    points = np.array([[0.0, 0.0, 0.002], [0.0, 0.0, 0.004], [-0.095, 0.0, 0.05], [0.0, 0.092, 0.05],
+                       [0.05, -0.05, 0.2]])
+    np.testing.assert_array_equal(bin_interior(points, box, floor_margin=0.003, wall_margin=0.01),
+                                  [False, True, False, False, True])
+    assert bin_interior(points, None, 0.003, 0.01).all()
+
+
+def test_an_envelope_on_the_bare_floor_keeps_its_own_centre_when_the_bin_is_given():
+    """6 mm thick, under the 1 cm radius: without the bin it joins the floor and takes the floor's centre."""
+    model, _ = load_model(DEFAULT_CHECKPOINT)
+    floor = _plate(-0.10, 0.10, -0.10, 0.10, 0.0)
+    floor = floor[~((floor[:, 0] >= 0.02) & (floor[:, 0] < 0.08) & (floor[:, 1] >= 0.0) & (floor[:, 1] < 0.06))]
+    envelope = _plate(0.02, 0.08, 0.0, 0.06, 0.006)
+    points = np.r_[floor, envelope].astype(np.float32)
+    obs = {"points": points, "normals": np.tile(UP, (len(points), 1)).astype(np.float32)}
+    info = {"workspace": np.array([[-0.10, -0.10, 0.0], [0.10, 0.10, 1.0]])}
+    policy = DiffusionCentreVotePolicy(model=model, voters=0, record_trajectory=False, decode_points=0,
+                                       centre_head=constant_head(model.encode_width, (0.0, 0.0, -0.003),
+                                                                 segment_radius=0.01))
+    assert len(points) <= policy.config.num_points  # decoded as given, in order
+    on_envelope = np.arange(len(floor), len(points))
+    policy.predict(obs, info)
+    np.testing.assert_allclose(policy.last_centres[on_envelope], np.tile(envelope.mean(axis=0), (len(envelope), 1)),
+                               atol=1e-6)
+    policy.predict(obs, None)
+    np.testing.assert_allclose(policy.last_centres[on_envelope], np.tile(points.mean(axis=0), (len(envelope), 1)),
+                               atol=1e-6)
