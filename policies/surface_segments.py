@@ -63,7 +63,7 @@ def segment_means(values: np.ndarray, labels: np.ndarray, count: int | None = No
     counts = np.bincount(labels, minlength=k)
     sums = np.stack([np.bincount(labels, values[:, d], minlength=k) for d in range(values.shape[1])], axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return sums.reshape(k, values.shape[1]) / counts[:, None], counts
+        return sums / counts[:, None], counts
 
 
 def offsets_to_centroids(points: np.ndarray, labels: np.ndarray) -> np.ndarray:

@@ -137,3 +137,18 @@ def test_an_envelope_on_the_bare_floor_keeps_its_own_centre_when_the_bin_is_give
     policy.predict(obs, None)
     np.testing.assert_allclose(policy.last_centres[on_envelope], np.tile(points.mean(axis=0), (len(envelope), 1)),
                                atol=1e-6)
+
+
+def test_a_top_far_from_its_segments_votes_leaves_the_votes():
+    """A tube half under another: its visible top's centroid lies 5 cm off the centre its votes agree on."""
+    seen = _plate(0.0, 0.10, 0.0, 0.04, 0.05)  # the visible half of a 20 cm tube whose centre is at x = 0.10
+    normals = np.tile(UP, (len(seen), 1))
+    labels = np.zeros(len(seen), dtype=np.int64)
+    at_centre = np.tile((0.10, 0.02, 0.03), (len(seen), 1))
+    _, found = top_centres(seen, normals, labels, 0.9, 5, votes=at_centre, max_shift=0.04)
+    assert not found.any()
+    tops, found = top_centres(seen, normals, labels, 0.9, 5, votes=at_centre, max_shift=0.06)
+    assert found.all()
+    np.testing.assert_allclose(tops[0], seen.mean(axis=0), atol=1e-12)
+    with pytest.raises(ValueError, match="a vote per point"):
+        top_centres(seen, normals, labels, 0.9, 5, votes=at_centre[:-1])

@@ -73,6 +73,7 @@ class CentreVoteConfig:
     segment_min_points: int = 5
     segment_floor_margin: float = 0.003  # m: six times the camera's depth noise, under the thinnest envelope (5 mm)
     segment_wall_margin: float = 0.01  # m
+    segment_max_shift: float = 0.04  # m: a top this far from its segment's mean vote (a covered parcel) keeps the votes
 
     def __post_init__(self) -> None:
         owner = type(self).__name__
@@ -91,7 +92,7 @@ class CentreVoteConfig:
         require_int(owner, "segment_min_points", self.segment_min_points, lo=1)
         require_int(owner, "spread_draws", self.spread_draws, lo=4)
         require(self.spread_draws % 4 == 0, owner, f"spread_draws must be a multiple of 4, got {self.spread_draws}")
-        require_positive_numbers(self, ("cluster_radius", "segment_vote_gap"))
+        require_positive_numbers(self, ("cluster_radius", "segment_vote_gap", "segment_max_shift"))
         require_int(owner, "cluster_neighbours", self.cluster_neighbours, lo=1)
         require_int(owner, "voters", self.voters, lo=0)
         require_choice(owner, "wrench_definition", self.wrench_definition, VOTE_DEFINITIONS)

@@ -85,7 +85,7 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
                                                  config.segment_wall_margin))
             labels = vote_segments(points[inside], centres[inside], config.segment_radius, config.segment_vote_gap)
             tops, found = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
-                                      config.segment_min_points)
+                                      config.segment_min_points, centres[inside], config.segment_max_shift)
             centres[inside[found]] = tops[found]
         self.last_centres, self.last_spread = centres, spread
         wrench = vote_wrench(points, normals, centres, config.wrench_definition,

@@ -38,20 +38,30 @@ def vote_segments(points: np.ndarray, centres: np.ndarray, radius: float, vote_g
     return radius_components(points, radius, votes_agree)
 
 
-def top_centres(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, up_cos: float, min_points: int
-                ) -> tuple[np.ndarray, np.ndarray]:
+def top_centres(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, up_cos: float, min_points: int,
+                votes: np.ndarray | None = None, max_shift: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) float64: the centroid of the up-facing points (normal z >= ``up_cos``) of each point's segment, and
-    (N,) whether that segment has at least ``min_points`` of them (where not, the centre is NaN)."""
+    (N,) whether that segment has at least ``min_points`` of them and, given the points' ``votes`` (N, 3), whether
+    that centroid lies within ``max_shift`` horizontally of the segment's mean vote (where not, the centre is NaN).
+
+    The shift test keeps a partly covered parcel on its votes: its visible top's centroid sits off its centre of
+    mass, towards the part the camera sees, while its votes still point at the whole parcel."""
     normals = np.asarray(normals, dtype=np.float64)
     labels = np.asarray(labels, dtype=np.int64)
     if normals.shape != np.shape(points) or labels.shape != (len(normals),):
         raise ValueError(f"need a normal and a label per point, got {normals.shape} and {labels.shape} for "
                          f"points {np.shape(points)}")
+    if votes is not None and np.shape(votes) != normals.shape:
+        raise ValueError(f"need a vote per point, got {np.shape(votes)} for points {np.shape(points)}")
     if len(labels) == 0:
         return np.zeros((0, 3)), np.zeros(0, dtype=bool)
+    count = int(labels.max()) + 1
     up = normals[:, 2] >= up_cos
-    centroids, counts = segment_means(np.asarray(points, dtype=np.float64)[up], labels[up], int(labels.max()) + 1)
+    centroids, counts = segment_means(np.asarray(points, dtype=np.float64)[up], labels[up], count)
     found = counts >= int(min_points)
+    if votes is not None:
+        shift = segment_means(votes, labels, count)[0][:, :2] - centroids[:, :2]
+        found[found] = np.linalg.norm(shift[found], axis=1) <= max_shift
     centroids[~found] = np.nan
     return centroids[labels], found[labels]
 
