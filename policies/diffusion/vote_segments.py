@@ -7,7 +7,8 @@ misses by 0.2 cm, if one knew which points are that parcel's (``eval/centre_boun
 too coarse; together they segment well. Two decoded points are joined where they lie within ``radius`` of each other
 and their voted centres within ``vote_gap``: a parcel's surface is continuous and its votes drift slowly across it,
 while between two parcels either the surface breaks (a step, a gap) or the votes jump to another centre.
-Each segment with enough up-facing points is centred on their centroid. Nothing here sees ground truth.
+Each segment with enough up-facing points is centred on their centroid, unless that centroid lies far from the
+segment's mean vote, as a covered parcel's does (the camera sees part of its top). Nothing here sees ground truth.
 
 Only points inside the bin are segmented (``bin_interior``): the head learnt to vote on parcels, and its votes on
 the floor and walls are unconstrained, so an envelope lying on the bare floor joined the floor, and took the
