@@ -28,8 +28,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
-from parcelpick_env.config_checks import (config_from_dict, config_to_dict, require, require_choice, require_int,
-                                          require_positive_numbers)
+from parcelpick_env.config_checks import (config_from_dict, config_to_dict, require, require_choice,
+                                          require_finite_numbers, require_int, require_positive_numbers)
 from parcelpick_env.suction.quality import definition_config
 from parcelpick_env.suction.wrench import expected_wrench_scores, wrench_scores
 from policies.checkpoint_io import load_weights, read_checkpoint, save_atomic
@@ -83,10 +83,10 @@ class CentreVoteConfig:
                     f"{name} must be a non-empty tuple of widths, got {widths!r}")
             for width in widths:
                 require_int(owner, f"{name} widths", width, lo=1)
-        for name in ("spread_scale", "segment_radius", "segment_floor_margin", "segment_wall_margin"):
-            value = getattr(self, name)
-            require(isinstance(value, (int, float)) and bool(np.isfinite(value)) and value >= 0, owner,
-                    f"{name} must be a finite number >= 0, got {value!r}")
+        nonnegative = ("spread_scale", "segment_radius", "segment_floor_margin", "segment_wall_margin")
+        require_finite_numbers(self, nonnegative + ("segment_up_cos",))
+        for name in nonnegative:
+            require(getattr(self, name) >= 0, owner, f"{name} must be >= 0, got {getattr(self, name)!r}")
         require(-1.0 <= self.segment_up_cos <= 1.0, owner,
                 f"segment_up_cos must be in [-1, 1], got {self.segment_up_cos!r}")
         require_int(owner, "segment_min_points", self.segment_min_points, lo=1)
