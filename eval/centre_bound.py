@@ -24,6 +24,7 @@ import argparse
 import dataclasses
 import json
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,10 +98,10 @@ class _ChannelCapture(DiffusionSuctionPolicy):
 
     captured: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
-                ) -> np.ndarray:
+    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray,
+                info: Mapping[str, Any] | None = None) -> np.ndarray:
         self.captured = (points, normals, channel_scores)
-        return super().quality(points, normals, features, channel_scores)
+        return super().quality(points, normals, features, channel_scores, info)
 
 
 def _centred(policy: _ChannelCapture, centres_of_points: np.ndarray, top_k: int) -> Candidates:

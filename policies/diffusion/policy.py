@@ -133,7 +133,7 @@ class DiffusionSuctionPolicy(Policy):
         channel_scores = scores[0].float().cpu().numpy()
         if trajectory is not None:
             self.last_trajectory = Trajectory(points=points, maps=trajectory[:, 0].float().cpu().numpy())
-        quality = self.quality(points, normals, features[0], channel_scores)
+        quality = self.quality(points, normals, features[0], channel_scores, info)
         return select_candidates(points, normals, quality, top_k=top_k, nms_radius=self.nms_radius)
 
     def encode_cloud(self, points: np.ndarray, normals: np.ndarray, subset: np.ndarray | None = None) -> torch.Tensor:
@@ -158,8 +158,9 @@ class DiffusionSuctionPolicy(Policy):
             with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=low):
                 return self.model.encode(tensors, rows).float()
 
-    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
-                ) -> np.ndarray:
+    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray,
+                info: Mapping[str, Any] | None = None) -> np.ndarray:
         """(M,) ranking score of the decoded points: the product of the sampled channels (seal, wrench, collision
-        (, visibility)). ``features`` (M, F) are the encoder's, for variants that read more from them."""
+        (, visibility)). ``features`` (M, F) are the encoder's and ``info`` the observation's, for variants that read
+        more from them."""
         return channel_scores.prod(axis=1)

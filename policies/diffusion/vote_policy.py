@@ -12,7 +12,6 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from policies.base import Candidates
 from policies.diffusion.centre_vote import (DEFAULT_CENTRE_VOTE, CentreVoteHead, cluster_centres, file_sha256,
                                             load_centre_vote, vote_wrench)
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT
@@ -57,15 +56,9 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         self.centre_head = centre_head.to(self.device).eval()
         self.last_centres: np.ndarray | None = None  # (M, 3) the centres the last decoded points were scored about
         self.last_spread: np.ndarray | None = None  # (M,) their typical predicted error per horizontal axis (m)
-        self._bin: np.ndarray | None = None  # the bin's inner box of the observation being decided on (None: none)
 
-    def predict(self, obs: Mapping[str, np.ndarray], info: Mapping[str, Any] | None = None,
-                top_k: int = 50) -> Candidates:
-        self._bin = workspace(info, "Diffusion-Suction's vote segments")  # what quality() segments within
-        return super().predict(obs, info, top_k)
-
-    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray
-                ) -> np.ndarray:
+    def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray,
+                info: Mapping[str, Any] | None = None) -> np.ndarray:
         config = self.centre_head.config
         threads = torch.get_num_threads()
         voters = spread_indices(len(points), config.voters)
@@ -81,8 +74,8 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
             nearest = cKDTree(voter_points).query(points, workers=threads)[1]
             centres, spread = centres[nearest], spread[nearest]
         if config.segment_radius > 0:
-            inside = np.flatnonzero(bin_interior(points, self._bin, config.segment_floor_margin,
-                                                 config.segment_wall_margin))
+            inside = np.flatnonzero(bin_interior(points, workspace(info, "Diffusion-Suction's vote segments"),
+                                                 config.segment_floor_margin, config.segment_wall_margin))
             labels = vote_segments(points[inside], centres[inside], config.segment_radius, config.segment_vote_gap)
             tops, found = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
                                       config.segment_min_points, centres[inside], config.segment_max_shift)
@@ -90,7 +83,7 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         self.last_centres, self.last_spread = centres, spread
         wrench = vote_wrench(points, normals, centres, config.wrench_definition,
                              spread * config.spread_scale if config.spread_scale > 0 else None, config.spread_draws)
-        return super().quality(points, normals, features, channel_scores) * wrench
+        return super().quality(points, normals, features, channel_scores, info) * wrench
 
 
 def spread_indices(count: int, at_most: int) -> np.ndarray:
