@@ -33,7 +33,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from dataset.annotate import LABEL_CHANNELS
 from dataset.scene_record import scene_from_record
 from eval.ap import APConfig, _open, predict_scene, score_scene
 from eval.metrics import aggregate_ap
@@ -43,10 +42,10 @@ from parcelpick_env.suction.quality import definition_config, definition_scorer
 from parcelpick_env.suction.wrench import wrench_scores
 from policies.base import Candidates
 from policies.diffusion.policy import DiffusionSuctionPolicy
+from policies.diffusion.vote_policy import WRENCH_CHANNEL
 from policies.oracle import OraclePolicy
 from policies.postprocess import select_candidates
 
-WRENCH_CHANNEL = LABEL_CHANNELS.index("wrench")  # the model's score channels follow the labels' columns
 
 
 @dataclass(frozen=True)

@@ -164,7 +164,8 @@ def test_the_spread_draws_sample_a_unit_normal_the_same_way_every_time():
                                              ({"segment_up_cos": 1.5}, "segment_up_cos"),
                                              ({"segment_min_points": 0}, "segment_min_points"),
                                              ({"segment_floor_margin": -0.001}, "segment_floor_margin"),
-                                             ({"segment_max_shift": 0.0}, "segment_max_shift")])
+                                             ({"segment_max_shift": 0.0}, "segment_max_shift"),
+                                             ({"model_wrench": 1}, "model_wrench")])
 def test_bad_vote_configs_name_the_field(fields, message):
     with pytest.raises(ValueError, match=message):
         CentreVoteConfig(**fields)
@@ -206,9 +207,13 @@ def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
                            ((0.003, 0.0, -0.05), 1.0 - config.unit_mass * config.gravity * 0.003 / config.torque_threshold),
                            ((0.5, 0.0, 0.0), 0.0)):
         policy = DiffusionCentreVotePolicy(model=model, centre_head=constant_head(model.encode_width, offset),
-                                           voters=0, record_trajectory=False)  # every point votes: its own centre
+                                           voters=0, record_trajectory=False, model_wrench=True)  # votes: own centre
         np.testing.assert_allclose(policy.quality(points, n, features, channels), channels.prod(axis=1) * factor,
                                    rtol=1e-5, atol=1e-7)
+        replaced = DiffusionCentreVotePolicy(model=model, centre_head=constant_head(model.encode_width, offset),
+                                             voters=0, record_trajectory=False)  # by default, the model's wrench out
+        np.testing.assert_allclose(replaced.quality(points, n, features, channels),
+                                   channels[:, [0, 2]].prod(axis=1) * factor, rtol=1e-5, atol=1e-7)
         np.testing.assert_allclose(policy.last_centres, points + np.asarray(offset), atol=1e-6)
         picks = policy.predict(obs)  # predict ranks by the same score
         if factor == 1.0:
@@ -221,7 +226,7 @@ def test_the_policy_weights_its_channels_by_the_wrench_about_the_voted_centre():
     policy = DiffusionCentreVotePolicy(model=model, centre_head=constant_head(model.encode_width, offset, 0.01),
                                        voters=0, record_trajectory=False)
     expected = vote_wrench(points, n, points + np.asarray(offset), "suctionnet", spread=np.full(m, 0.01), draws=16)
-    np.testing.assert_allclose(policy.quality(points, n, features, channels), channels.prod(axis=1) * expected,
+    np.testing.assert_allclose(policy.quality(points, n, features, channels), channels[:, [0, 2]].prod(axis=1) * expected,
                                rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(policy.last_spread, 0.01, rtol=1e-5)
     assert expected.max() < 1.0 - config.unit_mass * config.gravity * 0.003 / config.torque_threshold

@@ -224,7 +224,7 @@ def test_the_vote_hold_policy_orders_the_votes_ranking_by_the_hold_probability(s
         policy.reset(0)
         return policy.predict(obs, info, top_k=top_k)
 
-    base = ranking(DiffusionCentreVotePolicy(model=model, centre_head=head, voters=0))
+    base = ranking(DiffusionCentreVotePolicy(model=model, centre_head=head, voters=0, model_wrench=True))
     assert not np.array_equal(base.points, ranking(DiffusionSuctionPolicy(model=model)).points)  # the votes act
     same = ranking(DiffusionVoteHoldPolicy(model=model, centre_head=head, voters=0, hold_net=logistic({}), rerank=20))
     np.testing.assert_array_equal(same.points, base.points)  # a constant hold keeps the votes' order
@@ -238,5 +238,7 @@ def test_the_vote_hold_policy_orders_the_votes_ranking_by_the_hold_probability(s
     assert all(torch.equal(a, b) for a, b in zip(shipped.hold_net.state_dict().values(),
                                                  shipped_hold.state_dict().values()))
     assert shipped.centre_head.config.segment_radius == 0  # without vote segments, where its hold check learnt
-    assert make_policy("diffusion_vote").centre_head.config.segment_radius > 0
+    assert shipped.centre_head.config.model_wrench is True  # and with the model's wrench channel in the score
+    votes = make_policy("diffusion_vote").centre_head.config
+    assert votes.segment_radius > 0 and votes.model_wrench is False
     assert make_policy("diffusion_vote_hold", segment_radius=0.01).centre_head.config.segment_radius == 0.01

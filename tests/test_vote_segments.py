@@ -88,16 +88,43 @@ def test_the_policy_scores_about_the_segments_top_and_without_segments_about_the
     kwargs = dict(model=model, voters=0, record_trajectory=False)
     on = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_radius=0.01),
                                    **kwargs)
-    assert on.centre_head.config.segment_vote_gap == 0.08
+    assert on.centre_head.config.segment_vote_gap == 0.16
     quality = on.quality(points, normals, features, channels)
     centre = points.mean(axis=0)
     np.testing.assert_allclose(on.last_centres, np.tile(centre, (len(points), 1)), atol=1e-6)
-    np.testing.assert_allclose(on.last_spread, 0.01, rtol=1e-5)  # the votes' error stands
-    assert np.argmax(quality) == np.argmin(np.linalg.norm(points[:, :2] - centre[:2], axis=1))  # the middle ranks first
+    np.testing.assert_array_equal(on.last_spread, 0.0)  # a visible top's centroid: the votes' error is not its own
+    from_centre = np.linalg.norm(points[:, :2] - centre[:2], axis=1)
+    assert quality[np.argmin(from_centre)] == pytest.approx(quality.max(), rel=1e-5)  # the middle first (exact: ties)
+    assert quality.max() > 0
+    assert quality[np.argmax(from_centre)] < quality.max()
     off = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_radius=0.01),
                                     segment_radius=0.0, **kwargs)
     off.quality(points, normals, features, channels)
     np.testing.assert_allclose(off.last_centres, points + np.asarray(offset), atol=1e-6)
+    np.testing.assert_allclose(off.last_spread, 0.01, rtol=1e-5)  # the votes' centres keep the votes' error
+
+
+def test_the_votes_wrench_replaces_the_models_wrench_channel_unless_asked_to_keep_it():
+    """Seal, wrench and collision channels (the labels' columns): a model wrench channel falling across the plate
+    moves the ranking only with ``model_wrench``; the other channels always count."""
+    model, _ = load_model(DEFAULT_CHECKPOINT)
+    points = _plate(0.0, 0.12, 0.0, 0.08, 0.04).astype(np.float32)
+    normals = np.tile(UP, (len(points), 1)).astype(np.float32)
+    features = torch.zeros(len(points), model.encode_width)
+    channels = np.ones((len(points), 3), dtype=np.float32)
+    kwargs = dict(model=model, voters=0, record_trajectory=False)
+    head = constant_head(model.encode_width, (0.0, 0.0, -0.02), segment_radius=0.01)
+    replaced = DiffusionCentreVotePolicy(centre_head=head, **kwargs)
+    plain = replaced.quality(points, normals, features, channels)
+    channels[:, 1] = np.linspace(1.0, 0.1, len(points))  # the model's wrench
+    np.testing.assert_array_equal(replaced.quality(points, normals, features, channels), plain)
+    channels[:, 0] = 0.5  # the seal still counts
+    np.testing.assert_allclose(replaced.quality(points, normals, features, channels), 0.5 * plain, rtol=1e-6)
+    kept = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, (0.0, 0.0, -0.02),
+                                                               segment_radius=0.01), model_wrench=True, **kwargs)
+    assert kept.centre_head.config.model_wrench is True
+    np.testing.assert_allclose(kept.quality(points, normals, features, channels), channels.prod(axis=1) * plain,
+                               rtol=1e-6)
 
 
 def test_vote_segments_refuse_mismatched_votes_and_a_zero_gap():

@@ -63,17 +63,22 @@ class CentreVoteConfig:
     spread_draws: int = 16
     # Vote segments (vote_segments.py): decoded points within segment_radius whose voted centres lie within
     # segment_vote_gap are one parcel, centred on its up-facing points (normal z >= segment_up_cos; at least
-    # segment_min_points of them, else the votes' centre stands), with the votes' error.
+    # segment_min_points of them, else the votes' centre stands), a centre taken as exact (no spread).
     # Only points segment_floor_margin above the bin's floor and segment_wall_margin in from its walls are segmented.
-    # segment_radius 0: the votes' centres alone (chosen on the held-out-asset validation split, docs/training.md,
-    # 'Vote segments')
-    segment_radius: float = 0.01  # m
-    segment_vote_gap: float = 0.08  # m
+    # segment_radius 0: the votes' centres alone. The radius is twice the decoded points' median spacing at the
+    # cell's camera (3.5 mm at 640x480 and 16,384 candidates): 5-10 mm and gaps of 5 cm to 10 m tried on both
+    # validation splits (docs/training.md, 'Finer vote segments'); scale it with the spacing at another resolution.
+    segment_radius: float = 0.007  # m
+    segment_vote_gap: float = 0.16  # m
     segment_up_cos: float = 0.9
     segment_min_points: int = 5
     segment_floor_margin: float = 0.003  # m: six times the camera's depth noise, under the thinnest envelope (5 mm)
     segment_wall_margin: float = 0.01  # m
     segment_max_shift: float = 0.04  # m: a top this far from its segment's mean vote (a covered parcel) keeps the votes
+    # Whether the model's own wrench channel stays in the score beside the votes' wrench. False: the votes' wrench
+    # replaces it, as eval/centre_bound.py's centres do (+0.9 to +2.6 Top-50 AP on validation with the segments);
+    # the hold variant keeps it, its check having learnt on picks ranked so.
+    model_wrench: bool = False
 
     def __post_init__(self) -> None:
         owner = type(self).__name__
@@ -96,6 +101,7 @@ class CentreVoteConfig:
         require_int(owner, "cluster_neighbours", self.cluster_neighbours, lo=1)
         require_int(owner, "voters", self.voters, lo=0)
         require_choice(owner, "wrench_definition", self.wrench_definition, VOTE_DEFINITIONS)
+        require(isinstance(self.model_wrench, bool), owner, f"model_wrench must be true or false, got {self.model_wrench!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return config_to_dict(self)
