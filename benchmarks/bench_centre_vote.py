@@ -39,12 +39,12 @@ def bench_views(count: int, repeats: int) -> None:
                                                                                             record_trajectory=False),
                 "diffusion_vote, spread_scale=0 (the wrench about the averaged centre)": DiffusionCentreVotePolicy(
                     spread_scale=0.0, record_trajectory=False),
-                "diffusion_vote, segment_radius=0 (the votes' centres, no vote segments)": DiffusionCentreVotePolicy(
-                    segment_radius=0.0, record_trajectory=False)}
+                "diffusion_vote, segment_spacings=0 (the votes' centres, no vote segments)": DiffusionCentreVotePolicy(
+                    segment_spacings=0.0, record_trajectory=False)}
     shipped = DiffusionCentreVotePolicy(record_trajectory=False)
     config = shipped.centre_head.config
     policies[f"diffusion_vote, voters={config.voters}, spread_draws={config.spread_draws}, "
-             f"segment_radius={config.segment_radius:g} (shipped)"] = shipped
+             f"segment_spacings={config.segment_spacings:g} (shipped)"] = shipped
     times: dict[str, list[float]] = {name: [] for name in policies}
     for obs, info in views:
         samples = interleaved_times({name: (lambda p=policy: p.predict(obs, info)) for name, policy in policies.items()},

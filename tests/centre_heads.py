@@ -11,12 +11,12 @@ from policies.surface_segments import LEVER_UNIT
 
 
 def constant_head(in_features: int, offset_m: tuple[float, float, float], spread_m: float = 0.0,
-                  segment_radius: float = 0.0) -> CentreVoteHead:
+                  segment_spacings: float = 0.0) -> CentreVoteHead:
     """A head that votes every point's centre at ``offset_m`` from it (no clustering: a tiny radius; no vote
-    segments unless ``segment_radius`` > 0), with the error ``spread_m`` per axis (0: the wrench about the voted
+    segments unless ``segment_spacings`` > 0), with the error ``spread_m`` per axis (0: the wrench about the voted
     centre alone, ``spread_scale=0``)."""
     config = CentreVoteConfig(hidden=(4,), spread_hidden=(4,), cluster_radius=1e-9, spread_scale=1.0 if spread_m else 0.0,
-                              segment_radius=segment_radius)
+                              segment_spacings=segment_spacings)
     head = CentreVoteHead(in_features, config)
     with torch.no_grad():
         for p in head.parameters():

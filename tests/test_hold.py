@@ -237,8 +237,8 @@ def test_the_vote_hold_policy_orders_the_votes_ranking_by_the_hold_probability(s
     assert isinstance(shipped, DiffusionVoteHoldPolicy)
     assert all(torch.equal(a, b) for a, b in zip(shipped.hold_net.state_dict().values(),
                                                  shipped_hold.state_dict().values()))
-    assert shipped.centre_head.config.segment_radius == 0  # without vote segments, where its hold check learnt
+    assert shipped.centre_head.config.segment_spacings == 0  # without vote segments, where its hold check learnt
     assert shipped.centre_head.config.model_wrench is True  # and with the model's wrench channel in the score
     votes = make_policy("diffusion_vote").centre_head.config
-    assert votes.segment_radius > 0 and votes.model_wrench is False
-    assert make_policy("diffusion_vote_hold", segment_radius=0.01).centre_head.config.segment_radius == 0.01
+    assert votes.segment_spacings > 0 and votes.model_wrench is False
+    assert make_policy("diffusion_vote_hold", segment_spacings=2.0).centre_head.config.segment_spacings == 2.0

@@ -10,7 +10,7 @@ import torch
 from centre_heads import constant_head
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
 from policies.diffusion.vote_policy import DiffusionCentreVotePolicy
-from policies.diffusion.vote_segments import bin_interior, top_centres, vote_segments
+from policies.diffusion.vote_segments import bin_interior, median_spacing, top_centres, vote_segments
 from policies.surface_segments import radius_components, segment_means
 
 UP = (0.0, 0.0, 1.0)
@@ -67,6 +67,12 @@ def test_a_top_is_its_up_facing_points_and_too_few_leave_the_votes():
     assert found.all()
 
 
+def test_median_spacing_is_the_typical_nearest_neighbour_distance():
+    assert median_spacing(_plate(0.0, 0.10, 0.0, 0.10, 0.0, 0.005)) == pytest.approx(0.005)
+    assert median_spacing(_plate(0.0, 0.30, 0.0, 0.30, 0.0, 0.015)) == pytest.approx(0.015)
+    assert median_spacing(np.zeros((1, 3))) == 0.0 and median_spacing(np.zeros((3, 3))) == 0.0
+
+
 def test_segment_means_and_radius_components_on_known_answers():
     means, counts = segment_means(np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]), np.array([0, 0, 2]), count=4)
     np.testing.assert_array_equal(counts, [2, 0, 1, 0])
@@ -79,14 +85,16 @@ def test_segment_means_and_radius_components_on_known_answers():
         radius_components(row, 0.0)
 
 
-def test_the_policy_scores_about_the_segments_top_and_without_segments_about_the_votes():
+@pytest.mark.parametrize("spacing", [0.005, 0.01])
+def test_the_policy_scores_about_the_segments_top_and_without_segments_about_the_votes(spacing):
+    """At either density the segments' radius (2 spacings) joins the plate into one parcel."""
     model, _ = load_model(DEFAULT_CHECKPOINT)
-    points = _plate(0.0, 0.12, 0.0, 0.08, 0.04).astype(np.float32)
+    points = _plate(0.0, 0.12, 0.0, 0.08, 0.04, spacing).astype(np.float32)
     normals = np.tile(UP, (len(points), 1)).astype(np.float32)
     features, channels = torch.zeros(len(points), model.encode_width), np.ones((len(points), 3), dtype=np.float32)
     offset = (0.0, 0.0, -0.02)  # each point votes 2 cm under itself: the votes spread over the whole plate
     kwargs = dict(model=model, voters=0, record_trajectory=False)
-    on = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_radius=0.01),
+    on = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_spacings=2.0),
                                    **kwargs)
     assert on.centre_head.config.segment_vote_gap == 0.16
     quality = on.quality(points, normals, features, channels)
@@ -97,8 +105,8 @@ def test_the_policy_scores_about_the_segments_top_and_without_segments_about_the
     assert quality[np.argmin(from_centre)] == pytest.approx(quality.max(), rel=1e-5)  # the middle first (exact: ties)
     assert quality.max() > 0
     assert quality[np.argmax(from_centre)] < quality.max()
-    off = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_radius=0.01),
-                                    segment_radius=0.0, **kwargs)
+    off = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, offset, 0.01, segment_spacings=2.0),
+                                    segment_spacings=0.0, **kwargs)
     off.quality(points, normals, features, channels)
     np.testing.assert_allclose(off.last_centres, points + np.asarray(offset), atol=1e-6)
     np.testing.assert_allclose(off.last_spread, 0.01, rtol=1e-5)  # the votes' centres keep the votes' error
@@ -113,7 +121,7 @@ def test_the_votes_wrench_replaces_the_models_wrench_channel_unless_asked_to_kee
     features = torch.zeros(len(points), model.encode_width)
     channels = np.ones((len(points), 3), dtype=np.float32)
     kwargs = dict(model=model, voters=0, record_trajectory=False)
-    head = constant_head(model.encode_width, (0.0, 0.0, -0.02), segment_radius=0.01)
+    head = constant_head(model.encode_width, (0.0, 0.0, -0.02), segment_spacings=2.0)
     replaced = DiffusionCentreVotePolicy(centre_head=head, **kwargs)
     plain = replaced.quality(points, normals, features, channels)
     channels[:, 1] = np.linspace(1.0, 0.1, len(points))  # the model's wrench
@@ -121,7 +129,7 @@ def test_the_votes_wrench_replaces_the_models_wrench_channel_unless_asked_to_kee
     channels[:, 0] = 0.5  # the seal still counts
     np.testing.assert_allclose(replaced.quality(points, normals, features, channels), 0.5 * plain, rtol=1e-6)
     kept = DiffusionCentreVotePolicy(centre_head=constant_head(model.encode_width, (0.0, 0.0, -0.02),
-                                                               segment_radius=0.01), model_wrench=True, **kwargs)
+                                                               segment_spacings=2.0), model_wrench=True, **kwargs)
     assert kept.centre_head.config.model_wrench is True
     np.testing.assert_allclose(kept.quality(points, normals, features, channels), channels.prod(axis=1) * plain,
                                rtol=1e-6)
@@ -145,7 +153,8 @@ def test_only_points_inside_the_bin_are_segmented():
 
 
 def test_an_envelope_on_the_bare_floor_keeps_its_own_centre_when_the_bin_is_given():
-    """6 mm thick, under the 1 cm radius: without the bin it joins the floor and takes the floor's centre."""
+    """6 mm thick, under the 1 cm radius (two of the floor's 5 mm spacings): without the bin it joins the floor and
+    takes the floor's centre."""
     model, _ = load_model(DEFAULT_CHECKPOINT)
     floor = _plate(-0.10, 0.10, -0.10, 0.10, 0.0)
     floor = floor[~((floor[:, 0] >= 0.02) & (floor[:, 0] < 0.08) & (floor[:, 1] >= 0.0) & (floor[:, 1] < 0.06))]
@@ -155,7 +164,7 @@ def test_an_envelope_on_the_bare_floor_keeps_its_own_centre_when_the_bin_is_give
     info = {"workspace": np.array([[-0.10, -0.10, 0.0], [0.10, 0.10, 1.0]])}
     policy = DiffusionCentreVotePolicy(model=model, voters=0, record_trajectory=False, decode_points=0,
                                        centre_head=constant_head(model.encode_width, (0.0, 0.0, -0.003),
-                                                                 segment_radius=0.01))
+                                                                 segment_spacings=2.0))
     assert len(points) <= policy.config.num_points  # decoded as given, in order
     on_envelope = np.arange(len(floor), len(points))
     policy.predict(obs, info)

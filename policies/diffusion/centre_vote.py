@@ -61,14 +61,14 @@ class CentreVoteConfig:
     # level; docs/training.md, 'The vote's spread')
     spread_scale: float = 1.0
     spread_draws: int = 16
-    # Vote segments (vote_segments.py): decoded points within segment_radius whose voted centres lie within
-    # segment_vote_gap are one parcel, centred on its up-facing points (normal z >= segment_up_cos; at least
-    # segment_min_points of them, else the votes' centre stands), a centre taken as exact (no spread).
-    # Only points segment_floor_margin above the bin's floor and segment_wall_margin in from its walls are segmented.
-    # segment_radius 0: the votes' centres alone. The radius is twice the decoded points' median spacing at the
-    # cell's camera (3.5 mm at 640x480 and 16,384 candidates): 5-10 mm and gaps of 5 cm to 10 m tried on both
-    # validation splits (docs/training.md, 'Finer vote segments'); scale it with the spacing at another resolution.
-    segment_radius: float = 0.007  # m
+    # Vote segments (vote_segments.py): decoded points within segment_spacings times their median nearest-neighbour
+    # spacing (3.5 mm at the cell's 16,384 candidates) whose voted centres lie within segment_vote_gap are one
+    # parcel, centred on its up-facing points (normal z >= segment_up_cos; at least segment_min_points of them, else
+    # the votes' centre stands), a centre taken as exact (no spread). Only points segment_floor_margin above the
+    # bin's floor and segment_wall_margin in from its walls are segmented. segment_spacings 0: the votes' centres
+    # alone. 1.75-2.5 spacings, 5-15 mm and gaps of 5 cm to 10 m tried on both validation splits (docs/training.md,
+    # 'Finer vote segments'); a radius in spacings holds at another candidate density, a fixed one did not.
+    segment_spacings: float = 2.0
     segment_vote_gap: float = 0.16  # m
     segment_up_cos: float = 0.9
     segment_min_points: int = 5
@@ -88,7 +88,7 @@ class CentreVoteConfig:
                     f"{name} must be a non-empty tuple of widths, got {widths!r}")
             for width in widths:
                 require_int(owner, f"{name} widths", width, lo=1)
-        nonnegative = ("spread_scale", "segment_radius", "segment_floor_margin", "segment_wall_margin")
+        nonnegative = ("spread_scale", "segment_spacings", "segment_floor_margin", "segment_wall_margin")
         require_finite_numbers(self, nonnegative + ("segment_up_cos",))
         for name in nonnegative:
             require(getattr(self, name) >= 0, owner, f"{name} must be >= 0, got {getattr(self, name)!r}")

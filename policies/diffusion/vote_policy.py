@@ -17,7 +17,7 @@ from policies.diffusion.centre_vote import (DEFAULT_CENTRE_VOTE, CentreVoteHead,
                                             load_centre_vote, vote_wrench)
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT
 from policies.diffusion.policy import DiffusionSuctionPolicy
-from policies.diffusion.vote_segments import bin_interior, top_centres, vote_segments
+from policies.diffusion.vote_segments import bin_interior, median_spacing, top_centres, vote_segments
 from policies.observation import workspace
 
 WRENCH_CHANNEL = LABEL_CHANNELS.index("wrench")  # the model's score channels follow the labels' columns
@@ -35,13 +35,14 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
     def __init__(self, checkpoint: str | os.PathLike | None = None, centre_vote: str | os.PathLike | None = None,
                  centre_head: CentreVoteHead | None = None, voters: int | None = None,
                  cluster_neighbours: int | None = None, spread_scale: float | None = None,
-                 segment_radius: float | None = None, model_wrench: bool | None = None, **kwargs: Any) -> None:
+                 segment_spacings: float | None = None, model_wrench: bool | None = None, **kwargs: Any) -> None:
         """``centre_vote``: the head's checkpoint (default: the shipped one), which must have been trained on
         ``checkpoint``'s features; ``centre_head`` instead uses an in-memory head (tests, with ``model=``).
-        ``voters``, ``cluster_neighbours``, ``spread_scale``, ``segment_radius``, ``model_wrench``: in place of the
+        ``voters``, ``cluster_neighbours``, ``spread_scale``, ``segment_spacings``, ``model_wrench``: in place of the
         head's stored ``CentreVoteConfig`` values (they act at inference only; ``--policy-arg voters=0`` votes at
-        every decoded point, ``spread_scale=0`` takes the wrench about the averaged centre alone, ``segment_radius=0``
-        the votes' centres without vote segments, ``model_wrench=true`` keeps the model's wrench channel too)."""
+        every decoded point, ``spread_scale=0`` takes the wrench about the averaged centre alone,
+        ``segment_spacings=0`` the votes' centres without vote segments, ``model_wrench=true`` keeps the model's
+        wrench channel too)."""
         super().__init__(checkpoint=checkpoint, **kwargs)
         if centre_head is None:
             encoder = checkpoint or DEFAULT_CHECKPOINT
@@ -52,7 +53,7 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         if centre_head.in_features != width:
             raise ValueError(f"the centre vote head reads {centre_head.in_features} features, the model gives {width}")
         overrides = {k: v for k, v in (("voters", voters), ("cluster_neighbours", cluster_neighbours),
-                                       ("spread_scale", spread_scale), ("segment_radius", segment_radius),
+                                       ("spread_scale", spread_scale), ("segment_spacings", segment_spacings),
                                        ("model_wrench", model_wrench))
                      if v is not None}
         if overrides:
@@ -77,20 +78,29 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         if len(voters) < len(points):
             nearest = cKDTree(voter_points).query(points, workers=threads)[1]
             centres, spread = centres[nearest], spread[nearest]
-        if config.segment_radius > 0:
-            inside = np.flatnonzero(bin_interior(points, workspace(info, "Diffusion-Suction's vote segments"),
-                                                 config.segment_floor_margin, config.segment_wall_margin))
-            labels = vote_segments(points[inside], centres[inside], config.segment_radius, config.segment_vote_gap)
-            tops, found = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
-                                      config.segment_min_points, centres[inside], config.segment_max_shift)
-            # a visible top's centroid misses by millimetres: the votes' error is not its own
-            centres[inside[found]], spread[inside[found]] = tops[found], 0.0
+        if config.segment_spacings > 0:
+            self._centre_on_tops(points, normals, centres, spread, info)
         self.last_centres, self.last_spread = centres, spread
         wrench = vote_wrench(points, normals, centres, config.wrench_definition,
                              spread * config.spread_scale if config.spread_scale > 0 else None, config.spread_draws)
         if not config.model_wrench:  # the votes' wrench in place of the model's own channel
             channel_scores = np.delete(channel_scores, WRENCH_CHANNEL, axis=1)
         return super().quality(points, normals, features, channel_scores, info) * wrench
+
+    def _centre_on_tops(self, points: np.ndarray, normals: np.ndarray, centres: np.ndarray, spread: np.ndarray,
+                        info: Mapping[str, Any] | None) -> None:
+        """In place: the points of each vote segment with a visible top (``vote_segments.py``) centred on that top,
+        with no spread: its centroid misses by millimetres, and the votes' error is not its own."""
+        config = self.centre_head.config
+        inside = np.flatnonzero(bin_interior(points, workspace(info, "Diffusion-Suction's vote segments"),
+                                             config.segment_floor_margin, config.segment_wall_margin))
+        radius = config.segment_spacings * median_spacing(points[inside])
+        if radius == 0:  # fewer than two points in the bin, or all at one place: nothing to segment
+            return
+        labels = vote_segments(points[inside], centres[inside], radius, config.segment_vote_gap)
+        tops, found = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
+                                  config.segment_min_points, centres[inside], config.segment_max_shift)
+        centres[inside[found]], spread[inside[found]] = tops[found], 0.0
 
 
 def spread_indices(count: int, at_most: int) -> np.ndarray:

@@ -19,14 +19,14 @@ DEFAULT_VOTE_HOLD = os.path.join(os.path.dirname(__file__), "checkpoints", "hold
 class DiffusionVoteHoldPolicy(DiffusionHoldPolicy, DiffusionCentreVotePolicy):
     """``DiffusionHoldPolicy`` over ``DiffusionCentreVotePolicy``'s ranking: it takes both parents' arguments
     (``hold``, ``rerank``; ``centre_vote``, ``voters``, ``cluster_neighbours``, ``spread_scale``,
-    ``segment_radius``, ``model_wrench``)."""
+    ``segment_spacings``, ``model_wrench``)."""
 
     name = "diffusion_vote_hold"
     default_hold = DEFAULT_VOTE_HOLD
 
-    def __init__(self, *args: Any, segment_radius: float | None = 0.0, model_wrench: bool | None = True,
+    def __init__(self, *args: Any, segment_spacings: float | None = 0.0, model_wrench: bool | None = True,
                  **kwargs: Any) -> None:
         """As the parents, but ranked as its hold check learnt (on picks made without vote segments, and scored with
-        the model's wrench channel beside the votes') unless ``segment_radius`` or ``model_wrench`` is given: on the
+        the model's wrench channel beside the votes') unless ``segment_spacings`` or ``model_wrench`` is given: on the
         validation piles the segments cost this policy R_grasp (docs/training.md, 'Vote segments')."""
-        super().__init__(*args, segment_radius=segment_radius, model_wrench=model_wrench, **kwargs)
+        super().__init__(*args, segment_spacings=segment_spacings, model_wrench=model_wrench, **kwargs)
