@@ -165,7 +165,8 @@ def test_the_spread_draws_sample_a_unit_normal_the_same_way_every_time():
                                              ({"segment_min_points": 0}, "segment_min_points"),
                                              ({"segment_floor_margin": -0.001}, "segment_floor_margin"),
                                              ({"segment_max_shift": 0.0}, "segment_max_shift"),
-                                             ({"model_wrench": 1}, "model_wrench")])
+                                             ({"model_wrench": 1}, "model_wrench"),
+                                             ({"segment_shift_spread": -0.5}, "segment_shift_spread")])
 def test_bad_vote_configs_name_the_field(fields, message):
     with pytest.raises(ValueError, match=message):
         CentreVoteConfig(**fields)

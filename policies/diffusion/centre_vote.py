@@ -64,7 +64,8 @@ class CentreVoteConfig:
     # Vote segments (vote_segments.py): decoded points within segment_spacings times their median nearest-neighbour
     # spacing (3.5 mm at the cell's 16,384 candidates) whose voted centres lie within segment_vote_gap are one
     # parcel, centred on its up-facing points (normal z >= segment_up_cos; at least segment_min_points of them, else
-    # the votes' centre stands), a centre taken as exact (no spread). Only points segment_floor_margin above the
+    # the votes' centre stands), with a spread of segment_shift_spread times that top's horizontal shift from the
+    # segment's mean vote (the two estimates' disagreement; 0: exact). Only points segment_floor_margin above the
     # bin's floor and segment_wall_margin in from its walls are segmented. segment_spacings 0: the votes' centres
     # alone. 1.75-2.5 spacings, 5-15 mm and gaps of 5 cm to 10 m tried on both validation splits (docs/training.md,
     # 'Finer vote segments'); a radius in spacings holds at another candidate density, a fixed one did not.
@@ -75,6 +76,7 @@ class CentreVoteConfig:
     segment_floor_margin: float = 0.003  # m: six times the camera's depth noise, under the thinnest envelope (5 mm)
     segment_wall_margin: float = 0.01  # m
     segment_max_shift: float = 0.04  # m: a top this far from its segment's mean vote (a covered parcel) keeps the votes
+    segment_shift_spread: float = 0.5  # 0, 0.5 and 1 tried on both validation splits (docs/training.md)
     # Whether the model's own wrench channel stays in the score beside the votes' wrench. False: the votes' wrench
     # replaces it, as eval/centre_bound.py's centres do (+0.9 to +2.6 Top-50 AP on validation with the segments);
     # the hold variant keeps it, its check having learnt on picks ranked so.
@@ -88,7 +90,8 @@ class CentreVoteConfig:
                     f"{name} must be a non-empty tuple of widths, got {widths!r}")
             for width in widths:
                 require_int(owner, f"{name} widths", width, lo=1)
-        nonnegative = ("spread_scale", "segment_spacings", "segment_floor_margin", "segment_wall_margin")
+        nonnegative = ("spread_scale", "segment_spacings", "segment_floor_margin", "segment_wall_margin",
+                       "segment_shift_spread")
         require_finite_numbers(self, nonnegative + ("segment_up_cos",))
         for name in nonnegative:
             require(getattr(self, name) >= 0, owner, f"{name} must be >= 0, got {getattr(self, name)!r}")

@@ -90,7 +90,9 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
     def _centre_on_tops(self, points: np.ndarray, normals: np.ndarray, centres: np.ndarray, spread: np.ndarray,
                         info: Mapping[str, Any] | None) -> None:
         """In place: the points of each vote segment with a visible top (``vote_segments.py``) centred on that top,
-        with no spread: its centroid misses by millimetres, and the votes' error is not its own."""
+        with the spread ``segment_shift_spread`` times the top's shift from the segment's mean vote: a whole top's
+        centroid misses by millimetres and agrees with its votes, the votes' own error is not its own, and a top
+        that sits off its votes (a fragment of a tube, a parcel half seen) is the one to doubt."""
         config = self.centre_head.config
         inside = np.flatnonzero(bin_interior(points, workspace(info, "Diffusion-Suction's vote segments"),
                                              config.segment_floor_margin, config.segment_wall_margin))
@@ -98,9 +100,9 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         if radius == 0:  # fewer than two points in the bin, or all at one place: nothing to segment
             return
         labels = vote_segments(points[inside], centres[inside], radius, config.segment_vote_gap)
-        tops, found = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
-                                  config.segment_min_points, centres[inside], config.segment_max_shift)
-        centres[inside[found]], spread[inside[found]] = tops[found], 0.0
+        tops, found, shift = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
+                                         config.segment_min_points, centres[inside], config.segment_max_shift)
+        centres[inside[found]], spread[inside[found]] = tops[found], config.segment_shift_spread * shift[found]
 
 
 def spread_indices(count: int, at_most: int) -> np.ndarray:

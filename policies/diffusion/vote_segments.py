@@ -53,13 +53,16 @@ def median_spacing(points: np.ndarray) -> float:
 
 
 def top_centres(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, up_cos: float, min_points: int,
-                votes: np.ndarray | None = None, max_shift: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) float64: the centroid of the up-facing points (normal z >= ``up_cos``) of each point's segment, and
+                votes: np.ndarray | None = None, max_shift: float = np.inf
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 3) float64: the centroid of the up-facing points (normal z >= ``up_cos``) of each point's segment;
     (N,) whether that segment has at least ``min_points`` of them and, given the points' ``votes`` (N, 3), whether
-    that centroid lies within ``max_shift`` horizontally of the segment's mean vote (where not, the centre is NaN).
+    that centroid lies within ``max_shift`` horizontally of the segment's mean vote (where not, the centre is NaN);
+    and (N,) that horizontal shift, in metres (zeros without ``votes``, NaN where no centre is found).
 
     The shift test keeps a partly covered parcel on its votes: its visible top's centroid sits off its centre of
-    mass, towards the part the camera sees, while its votes still point at the whole parcel."""
+    mass, towards the part the camera sees, while its votes still point at the whole parcel. Below the test, the
+    shift is the two estimates' disagreement: how far to trust the top's centre."""
     normals = np.asarray(normals, dtype=np.float64)
     labels = np.asarray(labels, dtype=np.int64)
     if normals.shape != np.shape(points) or labels.shape != (len(normals),):
@@ -68,16 +71,18 @@ def top_centres(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, up_
     if votes is not None and np.shape(votes) != normals.shape:
         raise ValueError(f"need a vote per point, got {np.shape(votes)} for points {np.shape(points)}")
     if len(labels) == 0:
-        return np.zeros((0, 3)), np.zeros(0, dtype=bool)
+        return np.zeros((0, 3)), np.zeros(0, dtype=bool), np.zeros(0)
     count = int(labels.max()) + 1
     up = normals[:, 2] >= up_cos
     centroids, counts = segment_means(np.asarray(points, dtype=np.float64)[up], labels[up], count)
     found = counts >= int(min_points)
+    shift = np.zeros(count)
     if votes is not None:
-        shift = segment_means(votes, labels, count)[0][:, :2] - centroids[:, :2]
-        found[found] = np.linalg.norm(shift[found], axis=1) <= max_shift
-    centroids[~found] = np.nan
-    return centroids[labels], found[labels]
+        with np.errstate(invalid="ignore"):  # segments without a top: NaN, and not found
+            shift = np.linalg.norm(segment_means(votes, labels, count)[0][:, :2] - centroids[:, :2], axis=1)
+        found[found] = shift[found] <= max_shift
+    centroids[~found], shift[~found] = np.nan, np.nan
+    return centroids[labels], found[labels], shift[labels]
 
 
 def bin_interior(points: np.ndarray, box: np.ndarray | None, floor_margin: float, wall_margin: float) -> np.ndarray:
