@@ -47,7 +47,6 @@ from policies.oracle import OraclePolicy
 from policies.postprocess import select_candidates
 
 
-
 @dataclass(frozen=True)
 class CentreBoundConfig:
     """Which centres are scored, and what counts as a parcel's observed top."""

@@ -78,7 +78,7 @@ class CentreVoteConfig:
     segment_max_shift: float = 0.04  # m: a top this far from its segment's mean vote (a covered parcel) keeps the votes
     segment_shift_spread: float = 0.5  # 0, 0.5 and 1 tried on both validation splits (docs/training.md)
     # Whether the model's own wrench channel stays in the score beside the votes' wrench. False: the votes' wrench
-    # replaces it, as eval/centre_bound.py's centres do (+0.9 to +2.6 Top-50 AP on validation with the segments);
+    # replaces it, as eval/centre_bound.py's centres do (+0.8 Top-50 AP on val_novel with 1 cm segments, +1.8 at 7 mm);
     # the hold variant keeps it, its check having learnt on picks ranked so.
     model_wrench: bool = False
 

@@ -1,5 +1,6 @@
-"""Diffusion-Suction with centre votes (``diffusion_vote``): the shipped model's score re-weighted by the wrench
-about each point's voted parcel centre (``centre_vote.py``). Not in the paper."""
+"""Diffusion-Suction with centre votes (``diffusion_vote``): the shipped model's seal and collision scores times the
+wrench about each point's voted parcel centre (``centre_vote.py``), in place of the model's own wrench channel. Not
+in the paper."""
 
 from __future__ import annotations
 
@@ -24,11 +25,11 @@ WRENCH_CHANNEL = LABEL_CHANNELS.index("wrench")  # the model's score channels fo
 
 
 class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
-    """``DiffusionSuctionPolicy`` whose ranking score is its channels' product times the wrench score about each
-    point's voted centre (each vote averaged with its ``cluster_neighbours`` nearest within ``cluster_radius``, by
-    their predicted errors; votes cast at ``voters`` of the decoded points, the others taking their nearest voter's
-    centre; then, where the votes segment a parcel with a visible top, that top's centroid: ``vote_segments.py``),
-    expected over that centre's error."""
+    """``DiffusionSuctionPolicy`` whose ranking score is its channels' product (the wrench channel left out unless
+    ``model_wrench``) times the wrench score about each point's voted centre (each vote averaged with its
+    ``cluster_neighbours`` nearest within ``cluster_radius``, by their predicted errors; votes cast at ``voters`` of
+    the decoded points, the others taking their nearest voter's centre; then, where the votes segment a parcel with a
+    visible top, that top's centroid: ``vote_segments.py``), expected over that centre's error."""
 
     name = "diffusion_vote"
 
