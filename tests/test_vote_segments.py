@@ -12,7 +12,8 @@ import torch
 from centre_heads import constant_head
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
 from policies.diffusion.vote_policy import DiffusionCentreVotePolicy
-from policies.diffusion.vote_segments import bin_interior, median_spacing, top_centres, vote_segments
+from policies.diffusion.vote_segments import (bin_interior, covered_fraction, median_spacing, top_centres,
+                                             vote_segments)
 from policies.surface_segments import radius_components, segment_means
 
 UP = (0.0, 0.0, 1.0)
@@ -152,6 +153,47 @@ def test_a_top_that_sits_off_its_votes_is_doubted_by_half_their_gap():
     policy.centre_head.config = dataclasses.replace(policy.centre_head.config, segment_shift_spread=0.25)
     policy.quality(points, normals, features, channels)
     np.testing.assert_allclose(policy.last_spread, 0.005, atol=1e-6)
+
+
+def test_a_parcel_half_under_another_is_covered_and_a_free_one_is_not():
+    """A 10 x 10 cm carton whose right half lies under a second one 5 cm higher: its visible left half, mirrored about
+    its centre (where its votes place it), lands under the second carton. The second and a free third are clear."""
+    low = _plate(-0.05, 0.0, -0.05, 0.05, 0.05)  # the visible half of the covered carton, centred at the origin
+    high = _plate(0.0, 0.10, -0.05, 0.05, 0.10)  # the carton resting on its right half
+    free = _plate(0.30, 0.40, -0.05, 0.05, 0.05)
+    points = np.r_[low, high, free]
+    labels = np.repeat([0, 1, 2], [len(low), len(high), len(free)])
+    votes = np.r_[np.zeros((len(low), 3)), np.tile((0.05, 0.0, 0.0), (len(high), 1)),
+                  np.tile((0.35, 0.0, 0.0), (len(free), 1))]
+    covered = covered_fraction(points, labels, votes, points[:, 2], margin=0.01)
+    assert covered[: len(low)].min() > 0.8  # all but the mirrors that land back on its own seam
+    assert not covered[len(low):].any()
+    assert not covered_fraction(points, labels, votes, points[:, 2], margin=0.06).any()  # a 5 cm step, a 6 cm margin
+
+
+def test_the_policy_ranks_a_covered_parcel_down_by_its_covered_share():
+    """The segments' step finds the covered share from the votes it is given, and the score is scaled by 1 - it."""
+    model, _ = load_model(DEFAULT_CHECKPOINT)
+    low = _plate(-0.05, 0.0, -0.05, 0.05, 0.05)
+    high = _plate(0.0, 0.10, -0.05, 0.05, 0.10)
+    points = np.r_[low, high].astype(np.float32)
+    normals = np.tile(UP, (len(points), 1)).astype(np.float32)
+    votes = np.r_[np.zeros((len(low), 3)), np.tile((0.05, 0.0, 0.07), (len(high), 1))]  # the two cartons' centres
+    policy = DiffusionCentreVotePolicy(model=model, voters=0, record_trajectory=False,
+                                       centre_head=constant_head(model.encode_width, (0.0, 0.0, -0.02),
+                                                                 segment_spacings=2.0))
+    covered = policy._centre_on_tops(points, normals, votes.copy(), np.zeros(len(points)), None)
+    assert covered[: len(low)].min() > 0.8 and not covered[len(low):].any()
+    features, channels = torch.zeros(len(points), model.encode_width), np.ones((len(points), 3), dtype=np.float32)
+    policy.quality(points, normals, features, channels)  # a constant head: each segment's votes agree, no cover
+    assert policy.last_covered is not None and not policy.last_covered.any()
+    for share in (0.0, 0.25):  # the step stubbed to leave the votes' centres and report this share
+        policy._centre_on_tops = lambda *a, s=share, **k: np.full(len(points), s)  # type: ignore[method-assign]
+        scores = policy.quality(points, normals, features, channels)
+        if share == 0.0:
+            free = scores
+    assert free.max() > 0
+    np.testing.assert_allclose(scores, 0.75 * free, rtol=1e-6)
 
 
 def test_vote_segments_refuse_mismatched_votes_and_a_zero_gap():

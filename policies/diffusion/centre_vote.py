@@ -77,6 +77,9 @@ class CentreVoteConfig:
     segment_wall_margin: float = 0.01  # m
     segment_max_shift: float = 0.04  # m: a top this far from its segment's mean vote (a covered parcel) keeps the votes
     segment_shift_spread: float = 0.5  # 0, 0.5 and 1 tried on both validation splits (docs/training.md)
+    # a segment's score is multiplied by 1 - the share of its mirrored points (about its mean vote) that fall under
+    # another segment standing this far above its top: a parcel another rests on (vote_segments.covered_fraction)
+    segment_cover_margin: float = 0.01  # m
     # Whether the model's own wrench channel stays in the score beside the votes' wrench. False: the votes' wrench
     # replaces it, as eval/centre_bound.py's centres do (+0.8 Top-50 AP on val_novel with 1 cm segments, +1.8 at 7 mm);
     # the hold variant keeps it, its check having learnt on picks ranked so.
@@ -100,7 +103,7 @@ class CentreVoteConfig:
         require_int(owner, "segment_min_points", self.segment_min_points, lo=1)
         require_int(owner, "spread_draws", self.spread_draws, lo=4)
         require(self.spread_draws % 4 == 0, owner, f"spread_draws must be a multiple of 4, got {self.spread_draws}")
-        require_positive_numbers(self, ("cluster_radius", "segment_vote_gap", "segment_max_shift"))
+        require_positive_numbers(self, ("cluster_radius", "segment_vote_gap", "segment_max_shift", "segment_cover_margin"))
         require_int(owner, "cluster_neighbours", self.cluster_neighbours, lo=1)
         require_int(owner, "voters", self.voters, lo=0)
         require_choice(owner, "wrench_definition", self.wrench_definition, VOTE_DEFINITIONS)

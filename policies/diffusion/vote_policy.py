@@ -18,7 +18,8 @@ from policies.diffusion.centre_vote import (DEFAULT_CENTRE_VOTE, CentreVoteHead,
                                             load_centre_vote, vote_wrench)
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT
 from policies.diffusion.policy import DiffusionSuctionPolicy
-from policies.diffusion.vote_segments import bin_interior, median_spacing, top_centres, vote_segments
+from policies.diffusion.vote_segments import (bin_interior, covered_fraction, median_spacing, top_centres,
+                                             vote_segments)
 from policies.observation import workspace
 
 WRENCH_CHANNEL = LABEL_CHANNELS.index("wrench")  # the model's score channels follow the labels' columns
@@ -62,6 +63,7 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         self.centre_head = centre_head.to(self.device).eval()
         self.last_centres: np.ndarray | None = None  # (M, 3) the centres the last decoded points were scored about
         self.last_spread: np.ndarray | None = None  # (M,) their typical predicted error per horizontal axis (m)
+        self.last_covered: np.ndarray | None = None  # (M,) the share of each point's parcel under another
 
     def quality(self, points: np.ndarray, normals: np.ndarray, features: torch.Tensor, channel_scores: np.ndarray,
                 info: Mapping[str, Any] | None = None) -> np.ndarray:
@@ -79,31 +81,37 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         if len(voters) < len(points):
             nearest = cKDTree(voter_points).query(points, workers=threads)[1]
             centres, spread = centres[nearest], spread[nearest]
-        if config.segment_spacings > 0:
-            self._centre_on_tops(points, normals, centres, spread, info)
-        self.last_centres, self.last_spread = centres, spread
+        covered = (self._centre_on_tops(points, normals, centres, spread, info, threads)
+                   if config.segment_spacings > 0 else np.zeros(len(points)))
+        self.last_centres, self.last_spread, self.last_covered = centres, spread, covered
         wrench = vote_wrench(points, normals, centres, config.wrench_definition,
                              spread * config.spread_scale if config.spread_scale > 0 else None, config.spread_draws)
         if not config.model_wrench:  # the votes' wrench in place of the model's own channel
             channel_scores = np.delete(channel_scores, WRENCH_CHANNEL, axis=1)
-        return super().quality(points, normals, features, channel_scores, info) * wrench
+        return super().quality(points, normals, features, channel_scores, info) * wrench * (1.0 - covered)
 
     def _centre_on_tops(self, points: np.ndarray, normals: np.ndarray, centres: np.ndarray, spread: np.ndarray,
-                        info: Mapping[str, Any] | None) -> None:
+                        info: Mapping[str, Any] | None, workers: int = 1) -> np.ndarray:
         """In place: the points of each vote segment with a visible top (``vote_segments.py``) centred on that top,
         with the spread ``segment_shift_spread`` times the top's shift from the segment's mean vote: a whole top's
         centroid misses by millimetres and agrees with its votes, the votes' own error is not its own, and a top
-        that sits off its votes (a fragment of a tube, a parcel half seen) is the one to doubt."""
+        that sits off its votes (a fragment of a tube, a parcel half seen) is the one to doubt. Returns (N,) the
+        share of each point's parcel that lies under another (``covered_fraction``; 0 outside the segments)."""
         config = self.centre_head.config
+        covered = np.zeros(len(points))
         inside = np.flatnonzero(bin_interior(points, workspace(info, "Diffusion-Suction's vote segments"),
                                              config.segment_floor_margin, config.segment_wall_margin))
         radius = config.segment_spacings * median_spacing(points[inside])
         if radius == 0:  # fewer than two points in the bin, or all at one place: nothing to segment
-            return
-        labels = vote_segments(points[inside], centres[inside], radius, config.segment_vote_gap)
+            return covered
+        votes = centres[inside]
+        labels = vote_segments(points[inside], votes, radius, config.segment_vote_gap)
         tops, found, shift = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
-                                         config.segment_min_points, centres[inside], config.segment_max_shift)
+                                         config.segment_min_points, votes, config.segment_max_shift)
+        top_z = np.where(found, tops[:, 2], points[inside, 2])
+        covered[inside] = covered_fraction(points[inside], labels, votes, top_z, config.segment_cover_margin, workers)
         centres[inside[found]], spread[inside[found]] = tops[found], config.segment_shift_spread * shift[found]
+        return covered
 
 
 def spread_indices(count: int, at_most: int) -> np.ndarray:
