@@ -34,9 +34,11 @@ def segment_surfaces(points: np.ndarray, normals: np.ndarray, radius: float = 0.
 
 
 def radius_components(points: np.ndarray, radius: float,
-                      agree: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+                      agree: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                      tree: cKDTree | None = None) -> np.ndarray:
     """(N,) int64 labels: connected components of the graph joining the points closer than ``radius`` where
-    ``agree(a, b)`` (a boolean mask over the index pairs ``a``, ``b``; None: every such pair) holds."""
+    ``agree(a, b)`` (a boolean mask over the index pairs ``a``, ``b``; None: every such pair) holds. ``tree``: a
+    ``cKDTree`` already built on these points (float64), to share its build."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {points.shape}")
@@ -45,7 +47,9 @@ def radius_components(points: np.ndarray, radius: float,
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
-    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    if tree is not None and tree.n != n:
+        raise ValueError(f"the tree holds {tree.n} points, not these {n}")
+    pairs = (cKDTree(points) if tree is None else tree).query_pairs(radius, output_type="ndarray")
     if agree is not None:
         pairs = pairs[agree(pairs[:, 0], pairs[:, 1])]
     graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))

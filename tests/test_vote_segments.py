@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from centre_heads import constant_head
 from policies.diffusion.checkpoint import DEFAULT_CHECKPOINT, load_model
@@ -86,6 +87,9 @@ def test_segment_means_and_radius_components_on_known_answers():
     np.testing.assert_array_equal(radius_components(row, 0.01, lambda a, b: a != 0), [0, 1, 1, 2])
     with pytest.raises(ValueError, match="radius"):
         radius_components(row, 0.0)
+    np.testing.assert_array_equal(radius_components(row, 0.01, tree=cKDTree(row)), [0, 0, 0, 1])  # a shared build
+    with pytest.raises(ValueError, match="tree holds 3 points"):
+        radius_components(row, 0.01, tree=cKDTree(row[:3]))
 
 
 @pytest.mark.parametrize("spacing", [0.005, 0.01])

@@ -101,11 +101,14 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
         covered = np.zeros(len(points))
         inside = np.flatnonzero(bin_interior(points, workspace(info, "Diffusion-Suction's vote segments"),
                                              config.segment_floor_margin, config.segment_wall_margin))
-        radius = config.segment_spacings * median_spacing(points[inside])
-        if radius == 0:  # fewer than two points in the bin, or all at one place: nothing to segment
+        if len(inside) < 2:  # nothing to segment
+            return covered
+        tree = cKDTree(points[inside].astype(np.float64))  # shared by the spacing and the graph
+        radius = config.segment_spacings * median_spacing(points[inside], tree, workers)
+        if radius == 0:  # every point at one place
             return covered
         votes = centres[inside]
-        labels = vote_segments(points[inside], votes, radius, config.segment_vote_gap)
+        labels = vote_segments(points[inside], votes, radius, config.segment_vote_gap, tree)
         tops, found, shift = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
                                          config.segment_min_points, votes, config.segment_max_shift)
         top_z = np.where(found, tops[:, 2], points[inside, 2])

@@ -23,9 +23,10 @@ from scipy.spatial import cKDTree
 from policies.surface_segments import radius_components, segment_means
 
 
-def vote_segments(points: np.ndarray, centres: np.ndarray, radius: float, vote_gap: float) -> np.ndarray:
+def vote_segments(points: np.ndarray, centres: np.ndarray, radius: float, vote_gap: float,
+                  tree: cKDTree | None = None) -> np.ndarray:
     """(N,) int64 labels: components of the graph joining the ``points`` closer than ``radius`` whose voted
-    ``centres`` (N, 3) lie within ``vote_gap`` of each other."""
+    ``centres`` (N, 3) lie within ``vote_gap`` of each other (``tree``: one already built on the points)."""
     centres = np.asarray(centres, dtype=np.float32)
     if centres.shape != np.shape(points):
         raise ValueError(f"need one voted centre per point, got {centres.shape} for points {np.shape(points)}")
@@ -37,11 +38,12 @@ def vote_segments(points: np.ndarray, centres: np.ndarray, radius: float, vote_g
         step = centres[a] - centres[b]
         return np.einsum("ij,ij->i", step, step) <= gap2
 
-    return radius_components(points, radius, votes_agree)
+    return radius_components(points, radius, votes_agree, tree)
 
 
-def median_spacing(points: np.ndarray) -> float:
-    """The median distance (m) from each of ``points`` (N, 3) to its nearest other one; 0 for fewer than two.
+def median_spacing(points: np.ndarray, tree: cKDTree | None = None, workers: int = 1) -> float:
+    """The median distance (m) from each of ``points`` (N, 3) to its nearest other one; 0 for fewer than two
+    (``tree``: one already built on the points, float64; ``workers``: the query's threads).
 
     The segments' radius is a multiple of it: the decoded points' density follows the candidates asked for, and a
     radius fixed in metres that joins a parcel's points at one density (7 mm at 16,384 candidates) shatters every
@@ -49,7 +51,7 @@ def median_spacing(points: np.ndarray) -> float:
     points = np.asarray(points, dtype=np.float64)
     if len(points) < 2:
         return 0.0
-    return float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+    return float(np.median((cKDTree(points) if tree is None else tree).query(points, k=2, workers=workers)[0][:, 1]))
 
 
 def top_centres(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, up_cos: float, min_points: int,
