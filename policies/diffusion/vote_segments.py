@@ -107,8 +107,7 @@ def covered_fraction(points: np.ndarray, labels: np.ndarray, votes: np.ndarray, 
     mirrors = 2.0 * centre[labels] - points[:, :2]
     seen = cKDTree(points[:, :2]).query(mirrors, workers=workers)[1]
     under = (labels[seen] != labels) & (points[seen, 2] > np.asarray(top_z, dtype=np.float64) + margin)
-    share = np.bincount(labels, under, minlength=count) / np.bincount(labels, minlength=count).clip(min=1)
-    return share[labels]
+    return segment_means(under[:, None], labels, count)[0][labels, 0]
 
 
 def bin_interior(points: np.ndarray, box: np.ndarray | None, floor_margin: float, wall_margin: float) -> np.ndarray:
