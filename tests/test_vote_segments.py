@@ -200,6 +200,16 @@ def test_the_policy_ranks_a_covered_parcel_down_by_its_covered_share():
     np.testing.assert_allclose(scores, 0.75 * free, rtol=1e-6)
 
 
+def test_a_policys_overrides_leave_the_head_it_was_given_as_it_was():
+    model, _ = load_model(DEFAULT_CHECKPOINT)
+    head = constant_head(model.encode_width, (0.0, 0.0, -0.02), segment_spacings=2.0)
+    policy = DiffusionCentreVotePolicy(model=model, centre_head=head, segment_spacings=0.0, model_wrench=True,
+                                       record_trajectory=False)
+    assert policy.centre_head.config.segment_spacings == 0.0 and policy.centre_head.config.model_wrench is True
+    assert head.config.segment_spacings == 2.0 and head.config.model_wrench is False
+    assert DiffusionCentreVotePolicy(model=model, centre_head=head).centre_head.config == head.config
+
+
 def test_vote_segments_refuse_mismatched_votes_and_a_zero_gap():
     points = _plate(0.0, 0.02, 0.0, 0.02, 0.0)
     with pytest.raises(ValueError, match="one voted centre per point"):

@@ -4,6 +4,7 @@ in the paper."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 from collections.abc import Mapping
@@ -58,7 +59,8 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
                                        ("spread_scale", spread_scale), ("segment_spacings", segment_spacings),
                                        ("model_wrench", model_wrench))
                      if v is not None}
-        if overrides:
+        if overrides:  # on this policy's own copy: a head passed in keeps its config for its other users
+            centre_head = copy.copy(centre_head)
             centre_head.config = dataclasses.replace(centre_head.config, **overrides)
         self.centre_head = centre_head.to(self.device).eval()
         self.last_centres: np.ndarray | None = None  # (M, 3) the centres the last decoded points were scored about
