@@ -19,7 +19,8 @@ from eval.report import (TRAINED_VARIANTS, ReportConfig, ablation_table, compare
 from eval.report import orchestration
 from eval.report.config import CEILING, LABEL_ORACLE, PAPER_COMPAT_VARIANTS
 from eval.report.markdown import render_markdown
-from eval.report.tables import channel_cost_table, paper_compat_sentences, paper_compat_table, table_v
+from eval.report.tables import (channel_cost_table, glance_table, paper_compat_sentences, paper_compat_table,
+                                table_v)
 from eval.stats import TIE
 from policies import registry
 from policies.base import Policy
@@ -116,6 +117,25 @@ def test_each_clearance_table_says_whether_the_method_acted_through_the_tool_che
     report["policies"]["diffusion"]["clearance"].update(tool_check=False, config={"tool_check": False})
     md = write_report(report, tmp_path / "off" / "RESULTS.md", tmp_path / "off" / "figs")["markdown"].read_text()
     assert "Acting on its top candidate as ranked (`--no-tool-check`)" in md and "through the cell's" not in md
+
+
+def test_glance_table_puts_each_methods_headline_figures_in_one_row(report):
+    """Top-50 AP as a share of the label oracle's, the pooled rates and the lowest cell; '–' where not measured."""
+    policies = report["policies"]
+    policies["oracle"] = _entry("oracle", "Oracle (privileged ceiling)", _ap([[1.0, 1.0, 0.9], [1.0, 0.8]]),
+                                _clearance(4, 4, 4, 4))
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in glance_table(policies).splitlines()[2:]}
+    ours, oracle = policies["diffusion"]["ap"], policies["oracle"]["ap"]
+    assert ours["AP"] < oracle["AP"]
+    share = f"{100 * ours['AP'] / oracle['AP']:.1f}%"
+    assert rows["Diffusion-Suction"] == (f"| Diffusion-Suction | {format_interval(ours['intervals']['AP'])} | {share} | "
+                                         "– | 75.00 [no interval, n=1] | 75.00 [no interval, n=1] | "
+                                         "rectangular scattered: 75.00 |")
+    assert rows[f"{LABEL_ORACLE} / Oracle (privileged ceiling)"].split(" | ")[2] == "100.0%"
+    assert rows["Cao et al."].endswith("| – | – | – |")  # its clearance failed
+    assert rows["Dex-Net 3.0"] == "| Dex-Net 3.0 | – | – | – | – | – | – |"  # not available at all
+    del policies["oracle"]
+    assert "%" not in glance_table(policies)  # no label oracle, no share
 
 
 def test_table_v_counts_parting_pushes_apart_from_attempts():

@@ -33,6 +33,7 @@ from eval.report.tables import (
     distinct_results,
     failure_details,
     failure_table,
+    glance_table,
     outcome_table,
     paper_compat_sentences,
     paper_compat_table,
@@ -125,6 +126,10 @@ def render_markdown(report: dict[str, Any], figures: dict[str, Path | None], out
              "excludes 0.", ""]
     lines += cost_lines(report)
     lines += restored_lines(report)
+    lines += ["## At a glance", "",
+              "Each method's headline figures, from the sections below: the share of the label oracle's Top-50 AP, "
+              "and the Table V cell where its R_grasp is lowest, to read against the oracle's in that cell.", "",
+              glance_table(policies), ""]
     ap_scenes = [e["ap"]["num_scenes"] for e in policies.values() if e.get("ap")]
     if ap_scenes and min(ap_scenes) < MIN_AP_SCENES:
         lines += [f"Only {min(ap_scenes)} test scenes (fewer than {MIN_AP_SCENES}): AP gaps of a few points are "

@@ -243,6 +243,35 @@ def table_v(entry: dict[str, Any], objects=OBJECT_SETS, layouts=LAYOUTS) -> str:
     return "\n".join(lines)
 
 
+GLANCE_HEAD: tuple[str, ...] = ("method", f"Top-50 AP `{HEADLINE_QUALITY}`", "of the label oracle's",
+                                 "Top-50 AP `physical`", "R_grasp", "R_object", "lowest Table V cell, R_grasp")
+
+
+def glance_table(policies: dict[str, dict[str, Any]]) -> str:
+    """One row per method, the page's headline figures side by side: Top-50 AP under both definitions (and the
+    share of the label oracle's, issue 14's offline goal), the pooled clearance rates, and the Table V cell where
+    R_grasp is lowest (the closed-loop goal is per cell). The oracle's row reads its label oracle offline and its
+    own picks in the cell; '–' where a part was not measured."""
+    oracle = ap_result(policies.get(ORACLE, {}))
+    lines = ["| " + " | ".join(GLANCE_HEAD) + " |", "|---" * len(GLANCE_HEAD) + "|"]
+    for name, entry in policies.items():
+        headline, physical = ap_result(entry), ap_result(entry, "physical")
+        share = ("–" if headline is None or oracle is None or not oracle["AP"]
+                 else f"{100.0 * headline['AP'] / oracle['AP']:.1f}%")
+        summary = entry.get("clearance")
+        rates, lowest = ["–", "–"], "–"
+        if summary is not None:
+            rates = [_ours(summary["overall"], key) for key in ("R_grasp", "R_object")]
+            if summary["cells"]:
+                cell, worst = min(summary["cells"].items(), key=lambda kv: kv[1]["R_grasp"])
+                lowest = f"{cell.replace('/', ' ')}: {worst['R_grasp']:.2f}"
+        method = f"{ap_label(name, entry)} / {entry['label']}" if name == ORACLE else entry["label"]
+        cells = ["–" if headline is None else _ours(headline, "AP"), share,
+                 "–" if physical is None else _ours(physical, "AP"), *rates, lowest]
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def outcome_table(policies: dict[str, dict[str, Any]]) -> str:
     """Where the attempts went, per policy: the failure modes the rates hide."""
     head = ["method", "attempts", *OUTCOMES]
