@@ -105,16 +105,17 @@ class DiffusionCentreVotePolicy(DiffusionSuctionPolicy):
                                              config.segment_floor_margin, config.segment_wall_margin))
         if len(inside) < 2:  # nothing to segment
             return covered
-        tree = cKDTree(points[inside].astype(np.float64))  # shared by the spacing and the graph
-        radius = config.segment_spacings * median_spacing(points[inside], tree, workers)
+        # once, in the float64 every step below computes in
+        segment_points, votes = points[inside].astype(np.float64), centres[inside]
+        tree = cKDTree(segment_points)  # shared by the spacing and the graph
+        radius = config.segment_spacings * median_spacing(segment_points, tree, workers)
         if radius == 0:  # every point at one place
             return covered
-        votes = centres[inside]
-        labels = vote_segments(points[inside], votes, radius, config.segment_vote_gap, tree)
-        tops, found, shift = top_centres(points[inside], normals[inside], labels, config.segment_up_cos,
+        labels = vote_segments(segment_points, votes, radius, config.segment_vote_gap, tree)
+        tops, found, shift = top_centres(segment_points, normals[inside], labels, config.segment_up_cos,
                                          config.segment_min_points, votes, config.segment_max_shift)
-        top_z = np.where(found, tops[:, 2], points[inside, 2])
-        covered[inside] = covered_fraction(points[inside], labels, votes, top_z, config.segment_cover_margin, workers)
+        top_z = np.where(found, tops[:, 2], segment_points[:, 2])
+        covered[inside] = covered_fraction(segment_points, labels, votes, top_z, config.segment_cover_margin, workers)
         centres[inside[found]], spread[inside[found]] = tops[found], config.segment_shift_spread * shift[found]
         return covered
 
