@@ -37,7 +37,9 @@ def test_limits_validate_and_scale():
         JointLimits((1.0,) * 7, (1.0,) * 7, (0.0,) * 7)
     half = GEN3_LIMITS.scaled(0.5)
     np.testing.assert_allclose(half.acceleration, np.array(GEN3_LIMITS.acceleration) / 4)
-    assert GEN3_LIMITS.velocity[0] == pytest.approx(0.8727)
+    # Kinova's hard joint limits (ros_kortex hard_joint_limits.yaml): large actuators J1-4, small J5-7
+    assert GEN3_LIMITS.velocity == (1.33,) * 4 + (1.16,) * 3
+    assert GEN3_LIMITS.acceleration == (4.94,) * 4 + (9.5,) * 3
 
 
 def test_single_joint_duration_matches_closed_form():

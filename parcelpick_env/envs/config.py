@@ -48,7 +48,7 @@ class GraspConfig:
     min_carry_acceleration: float = 0.1  # m/s^2: floor of that timing (a parcel loaded past the target still moves)
     carry_speed: float = 0.5  # m/s peak tool speed while carrying
     seal_dwell: float = 0.05  # s holding still after contact while the vacuum builds (not checked)
-    pregrasp_distance: float = 0.04  # m along n above the target where the guarded approach starts
+    pregrasp_distance: float = 0.02  # m along n above the target where the guarded approach starts
     overshoot: float = 0.02  # m beyond the target along -n where the approach gives up (no_contact)
     approach_speed: float = 0.15  # m/s peak tool speed on the guarded approach
     touch_force: float = 1.0  # N of cup contact that ends the guarded approach (the lip is on the surface)

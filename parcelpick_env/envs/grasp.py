@@ -365,11 +365,13 @@ class PickExecutor:
 
     def settle_pile(self, scene: Scene) -> None:
         """After a step that ran dynamics, the rest of the pile comes to rest (cheaper solver, as the pile builder
-        does), all of it awake: a parcel the step left balanced at rest may still topple (docs/cell.md). The env
-        and the oracle's twin (``CellTwin.rehearse_push``) settle alike."""
+        does), all of it awake: a parcel the step left balanced at rest may still topple (docs/cell.md). It steps
+        at the lift's ``lift_dt``, the coarsest step at which a parcel sliding off another does not tunnel through
+        the floor. The env and the oracle's twin (``CellTwin.rehearse_push``) settle alike."""
         bodies = [ps.body_id for ps in scene.parcels if self.sim.has_body(ps.body_id)]
         if bodies:
-            with self.sim.physics_overrides(solver_iterations=self.grasp.carry_solver_iterations):
+            with self.sim.physics_overrides(timestep=self.grasp.lift_dt,
+                                            solver_iterations=self.grasp.carry_solver_iterations):
                 self.sim.settle(bodies, max_steps=self.grasp.max_post_settle_steps)
 
     def attempt(self, scene: Scene, point: np.ndarray, normal: np.ndarray) -> PickResult:

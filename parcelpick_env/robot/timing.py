@@ -27,7 +27,6 @@ import numpy as np
 import ruckig
 from scipy.interpolate import CubicSpline
 
-from parcelpick_env.robot.gen3 import VELOCITY_LIMIT
 from parcelpick_env.robot.kinematics import ARM_DOF
 
 BOUND_TOL = 1e-6  # relative slack on velocity and acceleration bounds (float round-off)
@@ -63,13 +62,16 @@ class JointLimits:
         return JointLimits(tuple(v * speed_scale), tuple(a * speed_scale**2), tuple(j * speed_scale**3))
 
 
-# Velocity: the V12 limit of every joint (gen3.VELOCITY_LIMIT). Acceleration: half of Kinova's hard
-# joint-acceleration limits for the 7-DoF Gen3 (4.94 rad/s^2 on the large actuators J1-4, 9.5 rad/s^2 on
-# the small J5-7, in the hard_joint_limits.yaml of Kinova's own ros_kortex MoveIt configuration), a
-# conservative margin for a carried parcel. Jerk: Kinova publishes none; we allow the acceleration to
-# build up in 0.1 s (jerk = acceleration / 0.1 s), a modelling choice.
-_GEN3_ACCEL = (2.47, 2.47, 2.47, 2.47, 4.75, 4.75, 4.75)
-GEN3_LIMITS = JointLimits(velocity=(VELOCITY_LIMIT,) * ARM_DOF, acceleration=_GEN3_ACCEL,
+# Velocity and acceleration: Kinova's hard joint limits for the 7-DoF Gen3, 1.33 rad/s and 4.94 rad/s^2 on
+# the large actuators J1-4, 1.16 rad/s and 9.5 rad/s^2 on the small J5-7 (hard_joint_limits.yaml of Kinova's
+# ros_kortex MoveIt configuration, which plans at them with velocity and acceleration scaling 1). They override
+# the URDF's V12 velocity (gen3.VELOCITY_LIMIT), as in that configuration. A carried parcel needs no margin
+# here: the lift and the carry are timed by its predicted ring load (GraspConfig.carry_load_target). Jerk:
+# Kinova publishes none; we allow the acceleration to build up in 0.1 s (jerk = acceleration / 0.1 s), a
+# modelling choice.
+_GEN3_VELOCITY = (1.33, 1.33, 1.33, 1.33, 1.16, 1.16, 1.16)
+_GEN3_ACCEL = (4.94, 4.94, 4.94, 4.94, 9.5, 9.5, 9.5)
+GEN3_LIMITS = JointLimits(velocity=_GEN3_VELOCITY, acceleration=_GEN3_ACCEL,
                           jerk=tuple(a / 0.1 for a in _GEN3_ACCEL))
 
 
