@@ -132,3 +132,22 @@ def test_bad_input_is_refused():
         path_trajectory(np.zeros((5, 6)))
     with pytest.raises(ValueError, match="dt"):
         joint_trajectory(np.zeros(7), [np.ones(7)], dt=0.0)
+
+
+def test_slowed_limits_keep_the_ramp_time_and_finish_sooner_than_a_retimed_move():
+    """``slowed``: velocity s, acceleration and jerk s^2, so acceleration builds up as fast as at full speed;
+    the same path then ends sooner than the full-speed move re-timed by s (``scaled``'s jerk s^3) by the
+    ramps' difference, within the slowed bounds."""
+    slow = GEN3_LIMITS.slowed(0.25)
+    v, a, j = GEN3_LIMITS.arrays()
+    np.testing.assert_allclose(slow.arrays()[0], v * 0.25)
+    np.testing.assert_allclose(slow.arrays()[1], a / 16)
+    np.testing.assert_allclose(np.array(slow.jerk) / np.array(slow.acceleration), j / a)  # the ramp's 0.1 s
+    with pytest.raises(ValueError, match="speed_scale"):
+        GEN3_LIMITS.slowed(1.5)
+    path = np.linspace(np.zeros(7), np.full(7, 0.3), 20)
+    slowed, retimed = path_trajectory(path, slow, DT), path_trajectory(path, GEN3_LIMITS, DT, 0.25)
+    assert_within_limits(slowed, slow)
+    # T = D/v + v/a + a/j: the ramp a/j is 0.1 s slowed and 0.1/s re-timed, the rest alike (a straight
+    # joint line has no curvature terms), so the re-timed move is 0.1 (1/s - 1) = 0.3 s longer
+    assert retimed.duration - slowed.duration == pytest.approx(0.3, abs=0.05)

@@ -57,6 +57,7 @@ OUTCOMES: tuple[str, ...] = ("success", "unreachable", "no_contact", "no_seal", 
                              "invalid_action")
 MOVES: tuple[str, ...] = ("plan", "hover", "descend", "approach", "seal", "lift", "transport", "release",
                           "retreat")
+SLOWDOWN_TRIES = 6  # PickExecutor._timed_within: slow-downs measured again before the exact re-timing
 HOVER_RISE = 1e-3  # m: a hover less than this above the pre-grasp point is the pre-grasp point (no descent)
 LIP_SEAT_BAND = 0.005  # m: the lip is seated on the collision hull when it lies this close along the axis
 SIDEWAYS_NORMAL_Z = 0.5  # a contact whose normal is within 60 deg of horizontal presses sideways (else bears or loads)
@@ -288,21 +289,50 @@ class PickExecutor:
               ) -> tuple[Trajectory | None, str | None]:
         """The tip on a straight line from its place at ``q0`` to ``end`` with the tool on ``axis`` (and
         yaw ``x_axis``): IK every ``step`` (``Gen3Arm.line_path``), then ``path_trajectory`` within
-        the Gen3's joint limits, slowed uniformly in time until the tip's peak speed is within
-        ``max_speed`` and its peak acceleration within ``max_accel`` (speed scales with the slow-down
-        s, acceleration with s^2). (trajectory, None) or (None, why)."""
-        arm = self.arm
-        path, why = arm.line_path(q0, end, axis, x_axis, step)
+        the Gen3's joint limits, slowed until the tip's peak speed is within ``max_speed`` and its peak
+        acceleration within ``max_accel`` (``_timed_within``). (trajectory, None) or (None, why)."""
+        path, why = self.arm.line_path(q0, end, axis, x_axis, step)
         if path is None:
             return None, why
-        traj = path_trajectory(path, arm.limits, dt)
-        motion = [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
-        v = max(float(np.linalg.norm(m[2])) for m in motion)
-        a = max(float(np.linalg.norm(m[4])) for m in motion)
-        scale = min(1.0, max_speed / max(v, 1e-9))
-        if max_accel is not None and a > max_accel:
-            scale = min(scale, math.sqrt(max_accel / a))
-        return (traj if scale >= 1.0 else path_trajectory(path, arm.limits, dt, 0.98 * scale)), None
+
+        def tip_peaks(traj: Trajectory) -> tuple[float, float]:
+            motion = self._sampled_motion(traj)
+            return (max(float(np.linalg.norm(m[2])) for m in motion),
+                    max(float(np.linalg.norm(m[4])) for m in motion))
+
+        return self._timed_within(path, dt, tip_peaks, max_speed, max_accel), None
+
+    def _sampled_motion(self, traj: Trajectory) -> list[tuple[np.ndarray, ...]]:
+        """``kin.tool_motion`` at every fourth sample of ``traj`` (the tool's peaks, as the time laws bound them)."""
+        return [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
+
+    def _timed_within(self, path: np.ndarray, dt: float, peaks: Callable[[Trajectory], tuple[float, float]],
+                      max_speed: float, max_accel: float | None) -> Trajectory:
+        """``path_trajectory`` of ``path`` within the Gen3's limits, slowed until ``peaks`` (a tool speed and
+        acceleration) are within ``max_speed`` and ``max_accel``.
+
+        Slowed by ``JointLimits.slowed`` (velocity s, acceleration and jerk s^2), measured again, and slowed
+        further while a peak is over (``SLOWDOWN_TRIES`` times). Should that not converge, the full-speed move
+        re-timed (``speed_scale``: speed s, acceleration s^2 exactly) is the answer, as it always was."""
+        arm = self.arm
+        fast = path_trajectory(path, arm.limits, dt)
+
+        def needed(t: Trajectory) -> float:
+            v, a = peaks(t)
+            scale = min(1.0, max_speed / max(v, 1e-9))
+            return scale if max_accel is None or a <= max_accel else min(scale, math.sqrt(max_accel / a))
+
+        first = scale = needed(fast)
+        total = 1.0
+        if first >= 1.0:
+            return fast
+        for _ in range(SLOWDOWN_TRIES):
+            total *= 0.98 * scale
+            traj = path_trajectory(path, arm.limits.slowed(total), dt)
+            scale = needed(traj)
+            if scale >= 1.0:
+                return traj
+        return path_trajectory(path, arm.limits, dt, 0.98 * first)
 
     def _line_collision(self, traj: Trajectory, attached: Attachment | None = None):
         """The first collision (planner's margin) at the samples of a Cartesian line, taken every
@@ -813,14 +843,15 @@ class PickExecutor:
         jump = float(np.abs(np.diff(joints, axis=0)).max())
         if jump > MAX_IK_JUMP:
             return None, f"ik jumped {jump:.2f} rad turning the tool down"
-        traj = path_trajectory(joints, arm.limits, step_dt)
         com_in_tool = _required(pick.com_in_tool, "the held parcel's centre of mass (set when attached)")
         lever = max(float(np.linalg.norm(com_in_tool)), 1e-3)
-        motion = [self.kin.tool_motion(traj.q[k], traj.qd[k], traj.qdd[k]) for k in range(0, len(traj), 4)]
-        w = max(float(np.linalg.norm(m[3])) for m in motion) * lever
-        a = max(float(np.linalg.norm(m[5])) for m in motion) * lever
-        scale = min(1.0, g.carry_speed / max(w, 1e-9), math.sqrt(a_max / max(a, 1e-9)))
-        return (traj if scale >= 1.0 else path_trajectory(joints, arm.limits, step_dt, 0.98 * scale)), None
+
+        def com_peaks(traj: Trajectory) -> tuple[float, float]:  # omega |d| and alpha |d|
+            motion = self._sampled_motion(traj)
+            return (max(float(np.linalg.norm(m[3])) for m in motion) * lever,
+                    max(float(np.linalg.norm(m[5])) for m in motion) * lever)
+
+        return self._timed_within(joints, step_dt, com_peaks, g.carry_speed, a_max), None
 
     def _turned_lift(self, scene: Scene, q0: np.ndarray, points: list[np.ndarray], pick: _Pick, a_max: float,
                      dt: float, why: str | None) -> tuple[Trajectory | None, str | None]:

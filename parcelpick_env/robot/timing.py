@@ -61,6 +61,19 @@ class JointLimits:
         v, a, j = self.arrays()
         return JointLimits(tuple(v * speed_scale), tuple(a * speed_scale**2), tuple(j * speed_scale**3))
 
+    def slowed(self, speed_scale: float) -> JointLimits:
+        """Velocity bounds times ``speed_scale`` s and acceleration and jerk bounds times s^2 (s in (0, 1]).
+
+        A slower move whose acceleration still builds up as quickly as at full speed: ``scaled``'s jerk s^3
+        stretches every ramp by 1/s, so a payload slowed to s = 0.3 spent a third of a second on each of the
+        four ramps of a rest-to-rest move. The result is no longer the full-speed move re-timed, so a caller
+        bounding a tool quantity by it measures the slowed move again (``grasp.PickExecutor._timed_within``).
+        """
+        if not 0 < speed_scale <= 1.0:
+            raise ValueError(f"speed_scale must be in (0, 1], got {speed_scale}")
+        v, a, j = self.arrays()
+        return JointLimits(tuple(v * speed_scale), tuple(a * speed_scale**2), tuple(j * speed_scale**2))
+
 
 # Velocity and acceleration: Kinova's hard joint limits for the 7-DoF Gen3, 1.33 rad/s and 4.94 rad/s^2 on
 # the large actuators J1-4, 1.16 rad/s and 9.5 rad/s^2 on the small J5-7 (hard_joint_limits.yaml of Kinova's
