@@ -21,6 +21,7 @@ from parcelpick_env.envs.custom_scene import BoxScene, PlacedBox
 from parcelpick_env.envs.grasp import CONDITIONS, LINE_STEP, MOVES, Failure, MoveReport
 from parcelpick_env.envs.parcel_pick import ParcelPickEnv
 from parcelpick_env.robot.arm import MAX_IK_JUMP
+from parcelpick_env.robot.timing import path_trajectory
 from parcelpick_env.suction.cup import (CupSpec, ToolState, contact_forces, cup_wrench, mesh_inertia,
                                         suction_ring_ratios)
 
@@ -621,5 +622,36 @@ def test_turn_down_rotates_the_tool_about_the_lip_to_vertical_within_the_budget(
                     for q, qd, qdd in zip(traj.q[::5], traj.qd[::5], traj.qdd[::5]))
         assert omega * 0.1 <= g.carry_speed * 1.05
         assert ex._turn_down(traj.q[-1], dataclasses.replace(pick, contact_axis=end_axis), 1.0) == (None, None)
+    finally:
+        env.close()
+
+
+def test_a_line_slowed_for_its_load_keeps_the_tip_within_the_bound_and_the_ramps_where_they_win():
+    """A carrying line under a tight tip acceleration bound (a heavy parcel's ``allowed_acceleration``) is slowed
+    until the tip's sampled peak acceleration is within it (``PickExecutor._timed_within``). Across the bin, 20 cm
+    sideways, keeping the 0.1 s acceleration ramps ends it much sooner than re-timing the full-speed move
+    uniformly (its ramps stretch by 1/s); 25 cm straight down the kept ramps' higher peak needs more slowing,
+    and the re-timed move stands."""
+    env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0)]))
+    try:
+        env.reset(seed=0)
+        ex, down = env.executor, np.array([0.0, 0.0, -1.0])
+        q0, a_max, dt = ex.ready_q, 0.3, env.config.grasp.lift_dt
+        start = ex.kin.forward(q0)[0]
+        durations = []
+        for end in (start + [0.2, 0.0, 0.0], start + [0.0, 0.0, -0.25]):
+            traj, why = ex._line(q0, end, down, dt, 0.5, a_max)
+            assert why is None
+            peak = max(float(np.linalg.norm(m[4])) for m in ex._sampled_motion(traj))
+            assert peak <= a_max * 1.001, peak
+            np.testing.assert_allclose(ex.kin.forward(traj.q[-1])[0], end, atol=2e-3)
+            path, _ = ex.arm.line_path(q0, end, down, None, LINE_STEP)
+            fast = path_trajectory(path, ex.arm.limits, dt)
+            first = math.sqrt(a_max / max(float(np.linalg.norm(m[4])) for m in ex._sampled_motion(fast)))
+            assert first < 0.5  # the bound binds hard
+            durations.append((traj.duration, path_trajectory(path, ex.arm.limits, dt, 0.98 * first).duration))
+        (sideways, sideways_retimed), (down_line, down_retimed) = durations
+        assert sideways < 0.8 * sideways_retimed, durations  # measured 2.01 s against 2.92
+        assert down_line == down_retimed, durations  # 2.42 s both
     finally:
         env.close()
