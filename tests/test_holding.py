@@ -655,3 +655,37 @@ def test_a_line_slowed_for_its_load_keeps_the_tip_within_the_bound_and_the_ramps
         assert down_line == down_retimed, durations  # 2.42 s both
     finally:
         env.close()
+
+
+def test_the_pile_sleeps_in_the_lift_only_once_the_held_parcel_has_left_it(monkeypatch):
+    """A neighbour resting against the lifted carton is put to sleep only after the carton has touched it
+    for the last time and a rest window has passed (``PickExecutor._dozing_once_clear``), and then sleeps."""
+    env = make(BoxScene([PlacedBox((0.30, 0.20, 0.10), 1.0), PlacedBox((0.10, 0.10, 0.08), 0.3, (0.0, 0.15))]))
+    env.reset(seed=0)
+    held, neighbour = (ps.body_id for ps in env.scene.parcels)
+    client, executor = env.sim.client, env.executor
+    touches, dozes, poses = [], [], []  # lift steps at which the carton touches the neighbour; (step, slept, position)
+    real = executor._dozing_once_clear
+
+    def spy(check, body, pile, doze, dt):
+        def counted():
+            touches.append(bool(pb.getContactPoints(bodyA=held, bodyB=neighbour, physicsClientId=client)))
+            poses.append(pb.getBasePositionAndOrientation(neighbour, physicsClientId=client))
+            return check()
+
+        def logged(ids):
+            slept = doze(ids)
+            dozes.append((len(touches), slept, pb.getBasePositionAndOrientation(neighbour, physicsClientId=client)))
+            return slept
+        return real(counted, body, pile, logged, dt)
+
+    monkeypatch.setattr(executor, "_dozing_once_clear", spy)
+    assert top_pick(env).outcome == "success"
+    assert any(touches)  # the neighbour leaned on the carton as the lift began
+    last_touch = max(k for k, t in enumerate(touches, start=1) if t)
+    window = env.sim.rest_steps(env.config.grasp.lift_dt)
+    assert len(dozes) >= 2 and dozes[0][0] == last_touch + window and dozes[0][1] == [neighbour]
+    # awake while the carton and the arm are near (a touch or an overlapping bounding box joins its island to
+    # theirs, and so wakes it: the physics stays intact), asleep, not moving to the bit, for the lift's end
+    moved = [k for k in range(1, len(poses)) if poses[k] != poses[k - 1]]
+    assert moved and moved[-1] < dozes[-1][0] and len(poses) - moved[-1] > window

@@ -55,10 +55,29 @@ def test_settle_stops_when_motion_stops(sim, library):
     sim.add_bin(BinSpec())
     asset = library.assets("train", "rectangular")[0]
     body = sim.add_parcel(asset, [0, 0, asset.extents[2] / 2 + 0.05], [0, 0, 0, 1], friction=0.6)
+    window = sim.rest_steps()
     steps = sim.settle([body])
-    assert steps < sim.config.max_settle_steps and sim.is_at_rest([body])
+    assert window < steps < sim.config.max_settle_steps  # it fell 5 cm first: more than one window
+    before = sim.com_poses([body])
+    sim.step(window)
+    assert sim.still(before, sim.com_poses([body]), window * sim.config.timestep).all()
+    assert sim.settle([body]) == window  # already at rest: one window shows it
     lowest = (Rotation.from_quat(sim.body_pose(body)[1]).apply(asset.mesh.vertices) + sim.body_pose(body)[0])[:, 2].min()
     assert abs(lowest) < 0.004  # resting on the floor (z = 0) with its true mesh, within the collision margin
+
+
+def test_still_is_net_motion_over_the_window_not_speed(sim):
+    """The one rest test: a body that moved 1 mm over a 1/6 s window is still (the tolerance is 0.01 m/s
+    times the window, 1.67 mm), whatever its speed in between; 2 mm is not; a turn of 0.5 degree is still,
+    2 degrees is not (0.1 rad/s times the window is 0.017 rad, 0.95 degree)."""
+    seconds = sim.config.rest_window
+    assert seconds == pytest.approx(1 / 6)
+    at = (np.zeros((4, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (4, 1)))
+    moved = np.array([[0.001, 0, 0], [0.002, 0, 0], [0, 0, 0], [0, 0, 0]])
+    turns = Rotation.from_euler("z", [[0.0], [0.0], [0.5], [2.0]], degrees=True).as_quat()
+    np.testing.assert_array_equal(sim.still(at, (moved, turns), seconds), [True, False, True, False])
+    assert sim.timestep == pytest.approx(sim.config.timestep)
+    assert sim.rest_steps() == 40 and sim.rest_steps(1 / 120) == 20
 
 
 def test_simulator_rejects_bad_input_and_cleans_up(library):

@@ -95,3 +95,23 @@ def test_a_stacked_pile_sleeps_through_the_carry_step(library):
                 before = np.array([_position(sim, b) for b in ids])
                 sim.step(120)
                 assert np.array_equal(np.array([_position(sim, b) for b in ids]), before)
+
+
+def test_a_sleep_scope_dozes_at_each_call_what_is_still_then_and_wakes_them_all(stack):
+    """``sleep_scope``: a body moving at the first doze is left awake, and sleeps at a later doze once it
+    is still; on leaving the block both are awake (the base's support removed, the top one falls)."""
+    sim, (base, top, side) = stack
+    pb.resetBaseVelocity(top, [0.2, 0.0, 0.0], physicsClientId=sim.client)
+    with sim.sleep_scope() as doze:
+        assert doze([base, top]) == [base]
+        pb.resetBaseVelocity(top, [0.0, 0.0, 0.0], physicsClientId=sim.client)
+        assert doze([top, side]) == [top, side]
+        sim.step(1)
+        before = _position(sim, top)
+        sim.step(60)
+        assert np.array_equal(_position(sim, top), before)
+    sim.step(1)
+    sim.remove(base)
+    z0 = _position(sim, top)[2]
+    sim.step(240)
+    assert _position(sim, top)[2] < z0 - 0.08

@@ -36,10 +36,11 @@ replay's file name's) instead of one drawn from the reset seed.
 Replays: with ``record_dir`` set, each episode is written to ``record_dir/episode_<k>_seed<s>.rrd``
 (``self.replay_path``; ``self.recorder`` is the live ``EpisodeRecorder``).
 
-Speed: free-space moves are collision-checked kinematically; the approach runs at the simulator's step
-the lift at ``GraspConfig.lift_dt`` and the transport at the coarser ``carry_dt``, both with fewer solver
-iterations; the resting pile sleeps during transport (``Simulator.asleep``, docs/cell.md). The observed
-normals are estimated at the sampled points only (``Camera.normals_at``).
+Speed: free-space moves are collision-checked kinematically; the approach, the seal's dwell and the lift run
+at ``GraspConfig.lift_dt`` and the transport at the coarser ``carry_dt``, all with fewer solver iterations than
+the pile builder's; the resting pile sleeps during transport, and in the lift once the held parcel has left it
+(``Simulator.sleep_scope``, docs/cell.md). The observed normals are estimated at the sampled points only
+(``Camera.normals_at``).
 """
 
 from __future__ import annotations

@@ -49,7 +49,6 @@ from parcelpick_env.scene.scene import BinSpec, ParcelState, Scene
 from parcelpick_env.sim.simulator import Simulator
 
 DROP_SOLVER_ITERATIONS = 30  # solver iterations while the pile falls; fewer jitter and never come to rest
-REST_WINDOW = 1 / 6  # s: at rest when the net motion over this window is within SimConfig's velocity tolerances
 DROP_TIME = 1.5  # s of simulated time the chute phase may take at most (parcels fall ~1 m in 0.45 s)
 SETTLE_TIME = 2.0  # s the pile may take to settle once the chute is gone (and for a scattered layout)
 STACK_CANDIDATES = 64  # start spots tried per stacked parcel; the lowest wins (a dense, low start)
@@ -233,41 +232,29 @@ def _add_chute(sim: Simulator, spec: BinSpec, top: float) -> int:
     return body
 
 
-def _com_poses(sim: Simulator, bodies: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """World centre-of-mass positions (n, 3) and orientations (n, 4): pybullet's own base frame."""
-    poses = [pb.getBasePositionAndOrientation(b, physicsClientId=sim.client) for b in bodies]
-    return (np.array([q[0] for q in poses], dtype=np.float64).reshape(-1, 3),
-            np.array([q[1] for q in poses], dtype=np.float64).reshape(-1, 4))
-
-
 def _settle_culling(sim: Simulator, live: dict[int, ParcelAsset], spec: BinSpec, cap: int,
                     solver_iterations: int | None = None) -> tuple[int, set[int], bool]:
     """Step until the pile stops moving, removing parcels that fell out of the bin (below the rim,
     outside the walls) as soon as they do, so it does not wait for them to roll on the ground.
 
-    At rest means no parcel's net motion over the last ``REST_WINDOW`` exceeds the simulator's velocity
-    tolerances (``SimConfig.linear_velocity_tol``/``angular_velocity_tol`` times the window): solver
-    jitter that goes nowhere (thin mailers on hulls) does not count, sliding does. Bullet piles also
+    At rest is the simulator's one test (``Simulator.still`` over ``SimConfig.rest_window``). Bullet piles also
     creep by a few mm/s for seconds, so ``cap`` bounds the wait. Mutates ``live``; returns the steps
     taken, the removed bodies and whether it came to rest within ``cap`` steps.
     """
     with sim.physics_overrides(solver_iterations=solver_iterations):
         dt = sim.config.timestep
-        chunk = max(1, int(round(REST_WINDOW / dt)))
-        max_move = sim.config.linear_velocity_tol * chunk * dt
-        max_turn = sim.config.angular_velocity_tol * chunk * dt
+        chunk = sim.rest_steps(dt)
         fallen: set[int] = set()
         steps, rest = 0, False
         bodies = list(live)
-        pos, orn = _com_poses(sim, bodies)
+        before = sim.com_poses(bodies)
         while steps < cap and live and not rest:
             n = min(chunk, cap - steps)
             sim.step(n)
             steps += n
-            new_pos, new_orn = _com_poses(sim, bodies)
-            turned = 2 * np.arccos(np.clip(np.abs(np.sum(new_orn * orn, axis=1)), 0.0, 1.0))
-            rest = bool(np.all(np.linalg.norm(new_pos - pos, axis=1) < max_move) and np.all(turned < max_turn))
-            out = (new_pos[:, 2] < spec.floor_z + spec.wall_height) & ~spec.contains(new_pos)
+            after = sim.com_poses(bodies)
+            rest = bool(sim.still(before, after, chunk * dt).all())
+            out = (after[0][:, 2] < spec.floor_z + spec.wall_height) & ~spec.contains(after[0])
             if out.any():
                 for body in np.asarray(bodies)[out].tolist():
                     sim.remove(body)
@@ -275,8 +262,8 @@ def _settle_culling(sim: Simulator, live: dict[int, ParcelAsset], spec: BinSpec,
                     del live[body]
                 rest = False
                 bodies = list(live)
-                new_pos, new_orn = new_pos[~out], new_orn[~out]
-            pos, orn = new_pos, new_orn
+                after = (after[0][~out], after[1][~out])
+            before = after
     return steps, fallen, rest or not live
 
 
@@ -333,7 +320,7 @@ def build_pile(sim: Simulator, config: PileConfig, seed: int, library: AssetLibr
     steps, fallen = steps + more, fallen | out
 
     bodies = list(live)
-    inside = spec.contains(_com_poses(sim, bodies)[0]) if bodies else np.zeros(0, bool)
+    inside = spec.contains(sim.com_poses(bodies)[0]) if bodies else np.zeros(0, bool)
     held = {b for b, ok in zip(bodies, inside) if ok}
     parcels: list[ParcelState] = []
     lost: list[str] = []

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 class SimConfig:
     """Integrator and settling settings.
 
-    Settling stops when every watched body moves slower than the velocity tolerances (checked every
-    ``check_interval`` steps, ``settle_checks`` checks in a row), or after ``max_settle_steps``.
+    Settling stops when no watched body's net motion over ``rest_window`` exceeds the velocity tolerances
+    times the window (``Simulator.still``), or after ``max_settle_steps``.
     """
 
     timestep: float = 1.0 / 240.0
@@ -19,8 +19,10 @@ class SimConfig:
     linear_velocity_tol: float = 0.01  # m/s
     angular_velocity_tol: float = 0.1  # rad/s
     max_settle_steps: int = 2400
-    check_interval: int = 10
-    settle_checks: int = 2
+    # s: a pile is at rest when no body's net motion over this window exceeds the velocity tolerances times it
+    # (the pile builder's test: solver jitter that goes nowhere does not count, sliding does); the lift waits
+    # this long after the held parcel has left the pile before the pile may sleep
+    rest_window: float = 1.0 / 6.0
     collision_margin: float = 0.001  # m, kept small so parcels rest on their true surface
     max_hull_vertices: int = 64  # collision hulls are reduced to this many vertices for speed
     # Simulator.asleep: bodies slower than these may sleep (5x the rest tolerances: the jitter of the carry's
@@ -39,14 +41,14 @@ class SimConfig:
             "timestep": self.timestep, "gravity": self.gravity,
             "linear_velocity_tol": self.linear_velocity_tol, "angular_velocity_tol": self.angular_velocity_tol,
             "sleep_motion": self.sleep_motion, "sleep_linear_velocity": self.sleep_linear_velocity,
-            "sleep_angular_velocity": self.sleep_angular_velocity,
+            "sleep_angular_velocity": self.sleep_angular_velocity, "rest_window": self.rest_window,
         }
         for name, value in positive.items():
             if not value > 0:
                 raise ValueError(f"SimConfig.{name} must be > 0, got {value!r}")
         if self.timestep > 0.05:
             raise ValueError(f"SimConfig.timestep {self.timestep} s is too coarse (max 0.05 s)")
-        for name in ("solver_iterations", "max_settle_steps", "check_interval", "settle_checks"):
+        for name in ("solver_iterations", "max_settle_steps"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"SimConfig.{name} must be >= 1, got {getattr(self, name)!r}")
         if not 0 <= self.collision_margin < 0.05:
