@@ -156,11 +156,15 @@ class Camera:
 
     def _back_project(self, depth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """World points (float64) of the pixels ``(rows, cols)`` of a metric z-depth image."""
-        # gathered by flat index: numpy's 2-D fancy indexing of (H, W, 3) is several times slower, same values
+        # gathered by flat index (numpy's 2-D fancy indexing of (H, W, 3) is several times slower) and scaled in
+        # place: each fresh 7 MB array of a 640x480 cloud costs its page faults
         flat = np.asarray(rows, dtype=np.int64) * depth.shape[1] + cols
-        cam_pts = self._rays.reshape(-1, 3)[flat] * depth.reshape(-1)[flat, None].astype(np.float64)
+        cam_pts = self._rays.reshape(-1, 3)[flat]
+        cam_pts *= depth.reshape(-1)[flat, None]  # float32 depth promoted to float64, exactly
         # a C-contiguous R^T: numpy's matmul takes its slow strided loop for a transposed view
-        return cam_pts @ np.ascontiguousarray(self.extrinsics[:3, :3].T) + self.extrinsics[:3, 3]
+        world = cam_pts @ np.ascontiguousarray(self.extrinsics[:3, :3].T)
+        world += self.extrinsics[:3, 3]
+        return world
 
     def _normals(self, points: np.ndarray, depth: np.ndarray, rows: np.ndarray, cols: np.ndarray,
                  at: np.ndarray | None) -> np.ndarray:
