@@ -196,11 +196,8 @@ class Simulator:
             pb.stepSimulation(physicsClientId=self.client)
         self.steps_taken += int(n)
 
-    def _at_rest(self, body_id: int, linear_tol: float | None = None, angular_tol: float | None = None) -> bool:
-        """Slower than both velocity tolerances (``SimConfig``'s rest tolerances by default)."""
-        cfg = self.config
-        lin_tol = cfg.linear_velocity_tol if linear_tol is None else linear_tol
-        ang_tol = cfg.angular_velocity_tol if angular_tol is None else angular_tol
+    def _slower_than(self, body_id: int, lin_tol: float, ang_tol: float) -> bool:
+        """Whether the body moves slower than both ``lin_tol`` (m/s) and ``ang_tol`` (rad/s) now."""
         lin, ang = pb.getBaseVelocity(body_id, physicsClientId=self.client)
         return (lin[0] ** 2 + lin[1] ** 2 + lin[2] ** 2 <= lin_tol ** 2
                 and ang[0] ** 2 + ang[1] ** 2 + ang[2] ** 2 <= ang_tol ** 2)
@@ -238,7 +235,7 @@ class Simulator:
 
         def doze(body_ids: Iterable[int]) -> list[int]:
             slept = [b for b in body_ids if self.has_body(b)
-                     and self._at_rest(b, cfg.sleep_linear_velocity, cfg.sleep_angular_velocity)]
+                     and self._slower_than(b, cfg.sleep_linear_velocity, cfg.sleep_angular_velocity)]
             for b in slept:
                 pb.changeDynamics(b, -1, sleepThreshold=cfg.sleep_motion, physicsClientId=c)
                 for flag in entry:
@@ -293,8 +290,9 @@ class Simulator:
         window = self.rest_steps(dt)
         steps, before = 0, self.com_poses(ids)
         while steps < cap:
-            self.step(min(window, cap - steps))
-            steps += min(window, cap - steps)
+            n = min(window, cap - steps)
+            self.step(n)
+            steps += n
             after = self.com_poses(ids)
             if self.still(before, after, window * dt).all():
                 break
