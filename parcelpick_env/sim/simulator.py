@@ -309,9 +309,14 @@ class Simulator:
         # The floor collides as a slab SOLID_DEPTH thick below its top (its visual keeps the wall thickness): a
         # box penetrated past its mid-plane pushes the intruder out of its far side, and a thin mailer falling
         # 1 m/s moves 17 mm per carry step, most of the 2 cm floor (docs/cell.md, 'Tunnelling').
+        # The walls' collision boxes reach down through that slab: standing on its top face, they left a seam where
+        # a thin envelope could wedge under a wall and be pressed into the floor (results/ORACLE.md, seventeenth session).
         col_half, col_centres = [list(h) for h in half], [list(c) for c in centres]
-        col_half[0][2] = SOLID_DEPTH / 2
-        col_centres[0][2] = spec.floor_z - SOLID_DEPTH / 2
+        bottom = spec.floor_z - SOLID_DEPTH
+        for i in range(len(boxes)):
+            top = col_centres[i][2] + col_half[i][2] if i else spec.floor_z
+            col_half[i][2] = (top - bottom) / 2
+            col_centres[i][2] = (top + bottom) / 2
         col = pb.createCollisionShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=col_half,
                                            collisionFramePositions=col_centres, physicsClientId=self.client)
         vis = pb.createVisualShapeArray([pb.GEOM_BOX] * len(boxes), halfExtents=half,
