@@ -47,7 +47,7 @@ def test_zero_configuration_matches_kinova_figures(client):
     assert len(arm.joints) == len(JOINTS) == 7
 
 
-def test_numpy_kinematics_agree_with_pybullet(client):
+def test_kinematics_agree_with_pybullet(client):
     arm = Gen3Arm(client)
     rng = np.random.default_rng(0)
     for _ in range(5):

@@ -2,8 +2,9 @@
 
 Offline and quick: the wheel is built without build isolation (this environment's setuptools), and the
 clean venv sees the already-installed dependencies through one ``.pth`` line naming a directory of
-links to this environment's site-packages minus parcelpick itself, so pip still checks every declared
-dependency (``--no-index``: nothing is downloaded) and the code runs from the wheel, not the checkout.
+links to this environment's site-packages minus parcelpick itself (and the dependencies' own ``.pth`` hooks), so
+pip still checks every declared dependency (``--no-index``: nothing is downloaded) and the code runs from the
+wheel, not the checkout.
 """
 
 from __future__ import annotations
@@ -71,6 +72,9 @@ def test_clean_venv_installs_the_wheel_and_runs_a_clearance_episode(wheel, tmp_p
     target = Path(_run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                        cwd=tmp_path).stdout.strip())
     (target / "_parcelpick_deps.pth").write_text(f"{deps}\n")
+    for hook in here.glob("*.pth"):  # the dependencies' own path hooks (pinocchio's cmeel prefix), after that line
+        if not hook.name.startswith(OWN):
+            shutil.copy2(hook, target / hook.name)
     _run([sys.executable, "-m", "pip", "--python", str(python), "install", "-q", "--no-index", "--find-links",
           str(wheel.parent), "parcelpick"], cwd=tmp_path)
 

@@ -1,10 +1,10 @@
-"""Forward kinematics, Jacobian and tool motion of the Gen3 with its suction tool, in numpy.
+"""Forward kinematics, Jacobian and tool motion of the Gen3 with its suction tool, by pinocchio.
 
-The same joint table as the URDF (``gen3.JOINTS``), so it agrees with pybullet's forward kinematics
-to 1e-5 m (tested). It is used to refine pybullet's IK answer by damped least squares (pybullet's
-null-space IK alone leaves 5-20 mm of error on this arm, and the refinement needs thousands of FK
-calls per episode) and to give the tool's velocity and acceleration along a trajectory, from which
-the held parcel's inertial wrench follows.
+The model is built from the same joint table as the URDF (``gen3.JOINTS``), so it agrees with pybullet's forward
+kinematics to 1e-5 m (tested). It is used to refine pybullet's IK answer by damped least squares (pybullet's
+null-space IK alone leaves 5-20 mm of error on this arm, and the refinement needs thousands of FK calls per
+episode) and to give the tool's velocity and acceleration along a trajectory, from which the held parcel's
+inertial wrench follows (the hold check asks for it at every carrying step: 3 us in pinocchio, 70-90 in numpy).
 """
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
 from parcelpick_env.robot.gen3 import EE_OFFSET, JOINTS
 
 ARM_DOF = 7
 _FLIP = np.diag([1.0, -1.0, -1.0])  # bracelet frame -> end-effector (and tool) frame: roll pi
-JDOT_STEP = 1e-4  # s, central-difference step of J along qd for Jdot
 _EYE6, _EYE_DOF = np.eye(6), np.eye(ARM_DOF)  # the IK loop's identities, made once (read only)
 _EYE6.flags.writeable = _EYE_DOF.flags.writeable = False
 
@@ -47,71 +47,51 @@ class Gen3Kinematics:
     """Tool-tip kinematics of the arm standing at ``base_position`` with ``base_yaw`` (world frame)."""
 
     def __init__(self, base_position, base_yaw: float, tool_length: float) -> None:
-        self.base_R = np.array(Rotation.from_euler("z", base_yaw).as_matrix())
-        self.base_p = np.asarray(base_position, dtype=np.float64)
-        self.offsets = [np.array(j[1]) for j in JOINTS]
-        self.rolls = [_rot_x(j[2]) for j in JOINTS]
-        self.ee = np.array(EE_OFFSET)
-        self.tip = np.array([0.0, 0.0, -tool_length])  # EE frame is bracelet rolled by pi: -z there
-        self._last_R = np.eye(3)  # bracelet frame of the last forward(); tool x = its x, tool z = -its z
+        model = pin.Model()
+        joint = 0
+        placement = pin.SE3(Rotation.from_euler("z", base_yaw).as_matrix(), np.asarray(base_position, np.float64))
+        for name, offset, roll, *_ in JOINTS:  # the parent frame moved by offset, rolled about x, then turned by q
+            placement = placement * pin.SE3(_rot_x(roll), np.asarray(offset, dtype=np.float64))
+            joint = model.addJoint(joint, pin.JointModelRZ(), placement, name)
+            placement = pin.SE3.Identity()
+        # the tool frame: the bracelet's, rolled by pi (x kept, z out of the cup), at the cup lip
+        tip = pin.SE3(_FLIP, np.asarray(EE_OFFSET, dtype=np.float64) + [0.0, 0.0, -tool_length])
+        self._tip = model.addFrame(pin.Frame("tool_tip", joint, tip, pin.FrameType.OP_FRAME))
+        self._model, self._data = model, model.createData()
+
+    def _placements(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Forward kinematics of ``q``: the tool's world position and rotation (columns x, y, z = approach)."""
+        pin.forwardKinematics(self._model, self._data, np.asarray(q, dtype=np.float64))
+        frame = pin.updateFramePlacement(self._model, self._data, self._tip)
+        return frame.translation, frame.rotation
 
     def forward(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Tip position, tip axis (+z of the tool), joint axes (7,3) and joint origins (7,3), world."""
-        R, t = self.base_R, self.base_p
-        axes, origins = np.empty((ARM_DOF, 3)), np.empty((ARM_DOF, 3))
-        rz = np.eye(3)
-        for i in range(ARM_DOF):
-            t = t + R @ self.offsets[i]
-            R = R @ self.rolls[i]
-            axes[i], origins[i] = R[:, 2], t
-            c, s = math.cos(q[i]), math.sin(q[i])
-            rz[0, 0], rz[0, 1], rz[1, 0], rz[1, 1] = c, -s, s, c
-            R = R @ rz
-        t = t + R @ self.ee
-        tip = t + R @ self.tip
-        self._last_R = R
-        return tip, -R[:, 2], axes, origins
-
-    def _chain(self, qs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``forward`` of K configurations (K, 7) at once: tips (K, 3), bracelet frames (K, 3, 3), joint axes
-        and origins (K, 7, 3), world."""
-        qs = np.asarray(qs, dtype=np.float64).reshape(-1, ARM_DOF)
-        k = len(qs)
-        R = np.broadcast_to(self.base_R, (k, 3, 3))
-        t = np.broadcast_to(self.base_p, (k, 3))
-        c, s = np.cos(qs), np.sin(qs)
-        axes, origins = np.empty((k, ARM_DOF, 3)), np.empty((k, ARM_DOF, 3))
-        rz = np.zeros((k, 3, 3))
-        rz[:, 2, 2] = 1.0
-        for i in range(ARM_DOF):
-            t = t + R @ self.offsets[i]
-            R = R @ self.rolls[i]
-            axes[:, i], origins[:, i] = R[:, :, 2], t
-            rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1] = c[:, i], -s[:, i], s[:, i], c[:, i]
-            R = R @ rz
-        return t + R @ (self.ee + self.tip), R, axes, origins
+        tip, R = self._placements(q)
+        joints = self._data.oMi
+        axes = np.array([joints[i].rotation[:, 2] for i in range(1, ARM_DOF + 1)])
+        origins = np.array([joints[i].translation for i in range(1, ARM_DOF + 1)])
+        return tip, R[:, 2].copy(), axes, origins
 
     def tips(self, qs: np.ndarray) -> np.ndarray:
-        """Tool-tip positions (K, 3) of K configurations at once (batched ``forward``)."""
-        return self._chain(qs)[0]
+        """Tool-tip positions (K, 3) of K configurations (K, 7)."""
+        qs = np.asarray(qs, dtype=np.float64).reshape(-1, ARM_DOF)
+        return np.array([self._placements(q)[0] for q in qs]).reshape(-1, 3)
 
     def tool_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tool-tip position and rotation matrix (columns: tool x, y, z = approach axis), world."""
-        tip, _, _, _ = self.forward(q)
-        return tip, self._last_R @ _FLIP
+        return self._placements(q)
 
     def tip_x(self, q: np.ndarray) -> np.ndarray:
         """The tool frame's x axis (world), i.e. the yaw of the cup about its axis."""
-        self.forward(q)
-        return self._last_R[:, 0].copy()
+        return self._placements(q)[1][:, 0].copy()
 
     def jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Tip position, tip axis and the (6, 7) geometric Jacobian of the tip: rows linear, angular."""
-        tip, axis, axes, origins = self.forward(q)
-        J = np.empty((6, ARM_DOF))
-        J[:3] = cross_rows(axes, tip - origins).T  # linear
-        J[3:] = axes.T  # angular
-        return tip, axis, J
+        J = pin.computeFrameJacobian(self._model, self._data, np.asarray(q, dtype=np.float64), self._tip,
+                                     pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        frame = self._data.oMf[self._tip]  # a view of pinocchio's data: copied out
+        return frame.translation.copy(), frame.rotation[:, 2].copy(), J
 
     def refine(self, q: np.ndarray, target: np.ndarray, axis: np.ndarray, rest: np.ndarray, lower: np.ndarray,
                upper: np.ndarray, tol_p: float, tol_a: float, x_axis: np.ndarray | None = None,
@@ -127,7 +107,7 @@ class Gen3Kinematics:
             e_pos = target - tip
             e_rot = cross_rows(cur_axis, axis)
             if x_axis is not None:
-                cur_x = self._last_R[:, 0]
+                cur_x = self._data.oMf[self._tip].rotation[:, 0].copy()
                 e_x = cross_rows(cur_x, x_axis)
                 if (np.linalg.norm(e_pos) < tol_p and np.linalg.norm(e_rot) < math.sin(tol_a)
                         and np.linalg.norm(e_x) < math.sin(tol_a) and cur_axis @ axis > 0 and cur_x @ x_axis > 0):
@@ -160,14 +140,12 @@ class Gen3Kinematics:
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Tool-tip (position, R, v, omega, a, alpha) in the world frame for joint state (q, qd, qdd).
 
-        ``[v; omega] = J qd`` and ``[a; alpha] = J qdd + Jdot qd``, with ``Jdot qd`` a central
-        difference of J along the motion (``J(q + h qd) - J(q - h qd)) / 2h``, exact to O(h^2)).
+        ``[v; omega] = J qd`` and ``[a; alpha] = J qdd + Jdot qd``, the tip's classical acceleration (the second
+        derivative of its position, not the spatial one), from pinocchio's first and second order kinematics.
         """
-        q, qd, qdd = (np.asarray(x, dtype=np.float64) for x in (q, qd, qdd))
-        # the three configurations in one batched chain (a quarter of the cost of four ``forward`` calls)
-        tips, R, axes, origins = self._chain(np.stack([q - JDOT_STEP * qd, q + JDOT_STEP * qd, q]))
-        J = np.concatenate([cross_rows(axes, tips[:, None, :] - origins), axes], axis=2).transpose(0, 2, 1)
-        twist = J[2] @ qd
-        accel = J[2] @ qdd + (J[1] - J[0]) @ qd / (2.0 * JDOT_STEP)
-        self._last_R = R[2]
-        return tips[2], R[2] @ _FLIP, twist[:3], twist[3:], accel[:3], accel[3:]
+        model, data, world = self._model, self._data, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+        pin.forwardKinematics(model, data, *(np.asarray(x, dtype=np.float64) for x in (q, qd, qdd)))
+        frame = pin.updateFramePlacement(model, data, self._tip)
+        twist = pin.getFrameVelocity(model, data, self._tip, world)
+        accel = pin.getFrameClassicalAcceleration(model, data, self._tip, world)
+        return frame.translation, frame.rotation, twist.linear, twist.angular, accel.linear, accel.angular
