@@ -17,7 +17,7 @@ from parcelpick_env.robot.gen3 import (
     SuctionToolSpec,
     gen3_suction_urdf,
 )
-from parcelpick_env.robot.kinematics import cross_rows
+from parcelpick_env.robot.kinematics import Gen3Kinematics, cross_rows
 from parcelpick_env.robot.timing import GEN3_LIMITS, bound_violation, joint_trajectory
 
 
@@ -61,6 +61,23 @@ def test_kinematics_agree_with_pybullet(client):
         np.testing.assert_allclose(position, pos, atol=1e-5)
         np.testing.assert_allclose(R, Rotation.from_quat(quat).as_matrix(), atol=5e-5)  # pybullet: float32
         np.testing.assert_allclose(arm.kin.tips(q[None])[0], pos, atol=1e-5)  # batched
+
+
+def test_kinematics_answers_are_the_callers_own_not_views_of_pinocchios_data():
+    """pinocchio hands out its placements as views; an answer kept by a caller (the IK's tip, the hold check's
+    tool state) must not change when the next configuration is computed."""
+    kin = Gen3Kinematics(ArmConfig().base_position, ArmConfig().base_yaw, 0.12)
+    rng = np.random.default_rng(4)
+    q1, q2 = rng.uniform(-1.0, 1.0, (2, 7))
+    calls = [lambda q: kin.forward(q), lambda q: kin.tool_pose(q), lambda q: (kin.tip_x(q),),
+             lambda q: kin.jacobian(q), lambda q: kin.tool_motion(q, np.ones(7), np.ones(7)),
+             lambda q: (kin.tips(q[None]),)]
+    for call in calls:
+        kept = call(q1)
+        copies = [np.array(x, copy=True) for x in kept]
+        call(q2)
+        for x, y in zip(kept, copies):
+            np.testing.assert_array_equal(x, y)
 
 
 def test_ik_is_verified_and_within_limits(client):

@@ -511,7 +511,7 @@ class PickExecutor:
             if climbed is not None and self.planner.collision(climbed, margin=0.0) is not None:
                 climbed = None  # a climb that ends with a link inside the tote or the pile is no hover
             if climbed is not None:
-                if float(self.kin.forward(climbed)[0][2]) <= pre[2] + HOVER_RISE:  # no higher: hover at pre-grasp
+                if float(self.kin.tool_pose(climbed)[0][2]) <= pre[2] + HOVER_RISE:  # no higher: hover at pre-grasp
                     pick.q_hover, high = climbed, False
                 else:
                     descend, why_climbed = self._line(climbed, pre, axis, g.control_dt_free, g.carry_speed)
@@ -871,7 +871,7 @@ class PickExecutor:
             return None, None
         about = np.cross(axis, down)
         about /= np.linalg.norm(about)
-        tip = self.kin.forward(q0)[0]
+        tip = self.kin.tool_pose(q0)[0]
         path, q = [np.asarray(q0, dtype=np.float64)], q0
         n = math.ceil(angle / TURN_STEP)
         for k in range(1, n + 1):
@@ -910,7 +910,7 @@ class PickExecutor:
             return None, why  # already top-down: nothing to turn
         body = pick.held.body_id
         lo, hi = self.sim.aabb(body)
-        tip = self.kin.forward(q0)[0]
+        tip = self.kin.tool_pose(q0)[0]
         end = np.asarray(points[-1], dtype=np.float64)
         radius = 0.5 * float(np.linalg.norm(hi[:2] - lo[:2])) + g.clearance
         clear = self._obstacle_top(scene, end[:2], radius, exclude=body) + g.clearance + (tip[2] - float(lo[2]))
@@ -940,7 +940,7 @@ class PickExecutor:
         distances from it, at carrying height: the path a cell's teach-in would take round the column.
         Each leg is timed rest-to-rest."""
         base = np.asarray(self.arm.config.base_position[:2], dtype=np.float64)
-        start = self.kin.forward(q0)[0]
+        start = self.kin.tool_pose(q0)[0]
         rel = np.array([start[:2] - base, end[:2] - base])
         heading = np.arctan2(*np.sum(rel / np.linalg.norm(rel, axis=1, keepdims=True), axis=0)[::-1])
         reach = float(np.linalg.norm(rel, axis=1).max())
@@ -994,7 +994,7 @@ class PickExecutor:
 
     def _lift(self, scene: Scene, pick: _Pick) -> MoveReport:
         self._attach(pick)
-        tip = self.kin.forward(self.arm.q)[0]
+        tip = self.kin.tool_pose(self.arm.q)[0]
         top = np.array([tip[0], tip[1], self._lift_height(scene, pick.held.body_id, float(tip[2]))])
         if pick.relief is None:
             return self._carry(scene, pick, "lift", top, pick.supports)
@@ -1014,7 +1014,7 @@ class PickExecutor:
             self._execute(down)
 
     def _transport(self, scene: Scene, pick: _Pick) -> MoveReport:
-        tip = self.kin.forward(self.arm.q)[0]
+        tip = self.kin.tool_pose(self.arm.q)[0]
         drop = np.array(self.grasp.drop_zone, dtype=np.float64)
         drop[2] = max(drop[2], tip[2])
         return self._carry(scene, pick, "transport", drop, set())

@@ -77,13 +77,13 @@ def push(executor: PickExecutor, scene: Scene, start: np.ndarray, direction: np.
         return lambda contacts: next((c for c in contacts if c.link in tool and c.normal_force > force), None)
 
     failure = _driven_line(ex, "descend", start, g.approach_speed, stop=pressing(g.push_touch_force))
-    if failure is None and float(ex.kin.forward(arm.q)[0][2]) > start[2] + PUSH_START_TOLERANCE:
+    if failure is None and float(ex.kin.tool_pose(arm.q)[0][2]) > start[2] + PUSH_START_TOLERANCE:
         failure = ("unreachable", Failure("descend", condition="blocked"))
     if failure is None:
-        tip = ex.kin.forward(arm.q)[0]
+        tip = ex.kin.tool_pose(arm.q)[0]
         failure = _driven_line(ex, "push", tip + g.push_distance * d, g.push_speed, stop=pressing(g.push_max_force))
     # rise clear of the pile before going home: whatever the tool still touches is not judged on the way up
-    tip = ex.kin.forward(arm.q)[0]
+    tip = ex.kin.tool_pose(arm.q)[0]
     up, _ = ex._line(arm.q, np.array([tip[0], tip[1], hover[2]]), DOWN, dt, g.approach_speed)
     if up is not None:
         ex._move = "rise"

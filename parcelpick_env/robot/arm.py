@@ -330,7 +330,7 @@ class Gen3Arm:
         or jumps branches. The rule every carrying and approach line of the cell obeys (``envs/grasp.py``), and
         the one the oracle checks a lift with."""
         q0 = np.asarray(q0, dtype=np.float64)
-        start = self.kin.forward(q0)[0]
+        start = self.kin.tool_pose(q0)[0]
         # A joint change above MAX_IK_JUMP between neighbours is a branch switch, or a fast but continuous turn
         # near a singular pose: a continuous one shrinks with the step (kept, FINE_STEPS times finer), a switch not.
         for k, limit in ((1, MAX_IK_JUMP), (FINE_STEPS, MAX_IK_JUMP / 2)):
@@ -354,7 +354,7 @@ class Gen3Arm:
         Returns (trajectory, None) or (None, reason): an IK failure or a jump between IK branches.
         """
         q = np.asarray(start_q, dtype=np.float64)
-        tip = self.kin.forward(q)[0]
+        tip = self.kin.tool_pose(q)[0]
         corners = np.vstack([tip[None], np.asarray(points, dtype=np.float64).reshape(-1, 3)])
         approach = np.asarray(axis, dtype=np.float64)
         legs = []
