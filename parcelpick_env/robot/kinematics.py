@@ -88,10 +88,15 @@ class Gen3Kinematics:
 
     def jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Tip position, tip axis and the (6, 7) geometric Jacobian of the tip: rows linear, angular."""
+        tip, R, J = self._frame_jacobian(q)
+        return tip, R[:, 2].copy(), J
+
+    def _frame_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Tip position, tool rotation and the tip's (6, 7) Jacobian, world-aligned."""
         J = pin.computeFrameJacobian(self._model, self._data, np.asarray(q, dtype=np.float64), self._tip,
                                      pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
         frame = self._data.oMf[self._tip]  # a view of pinocchio's data: copied out
-        return frame.translation.copy(), frame.rotation[:, 2].copy(), J
+        return frame.translation.copy(), frame.rotation.copy(), J
 
     def refine(self, q: np.ndarray, target: np.ndarray, axis: np.ndarray, rest: np.ndarray, lower: np.ndarray,
                upper: np.ndarray, tol_p: float, tol_a: float, x_axis: np.ndarray | None = None,
@@ -103,11 +108,12 @@ class Gen3Kinematics:
         q = np.asarray(q, dtype=np.float64)
         regulariser = damping**2 * _EYE6
         for _ in range(iterations):
-            tip, cur_axis, J = self.jacobian(q)
+            tip, R, J = self._frame_jacobian(q)
+            cur_axis = R[:, 2].copy()
             e_pos = target - tip
             e_rot = cross_rows(cur_axis, axis)
             if x_axis is not None:
-                cur_x = self._data.oMf[self._tip].rotation[:, 0].copy()
+                cur_x = R[:, 0].copy()
                 e_x = cross_rows(cur_x, x_axis)
                 if (np.linalg.norm(e_pos) < tol_p and np.linalg.norm(e_rot) < math.sin(tol_a)
                         and np.linalg.norm(e_x) < math.sin(tol_a) and cur_axis @ axis > 0 and cur_x @ x_axis > 0):
