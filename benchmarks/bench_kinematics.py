@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from parcelpick_env.robot.arm import ArmConfig  # noqa: E402
-from parcelpick_env.robot.gen3 import JOINTS, SuctionToolSpec  # noqa: E402
+from parcelpick_env.robot.gen3 import JOINT_LOWER, JOINT_UPPER, SuctionToolSpec  # noqa: E402
 from parcelpick_env.robot.kinematics import Gen3Kinematics  # noqa: E402
 from timing import interleaved_times  # noqa: E402
 
@@ -33,8 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     cfg = ArmConfig()
     kin = Gen3Kinematics(cfg.base_position, cfg.base_yaw, SuctionToolSpec().length)
     rng = np.random.default_rng(0)
-    lower = np.array([j[4] for j in JOINTS])
-    upper = np.array([j[5] for j in JOINTS])
+    lower, upper = JOINT_LOWER, JOINT_UPPER
     q = rng.uniform(lower, upper)
     qd, qdd = rng.uniform(-1.0, 1.0, 7), rng.uniform(-3.0, 3.0, 7)
     many = rng.uniform(lower, upper, (300, 7))

@@ -91,7 +91,7 @@ from parcelpick_env.envs.observation import asset_from_index, bin_from_vector
 from parcelpick_env.envs.push import is_push_action, pick_action
 from parcelpick_env.farthest_points import farthest_point_indices
 from parcelpick_env.robot.arm import ArmConfig
-from parcelpick_env.robot.gen3 import JOINTS, SuctionToolSpec
+from parcelpick_env.robot.gen3 import JOINT_LOWER, JOINT_UPPER, SuctionToolSpec
 from parcelpick_env.robot.kinematics import Gen3Kinematics
 from parcelpick_env.suction.config import SuctionConfig
 from parcelpick_env.suction.cup import CupSpec
@@ -489,8 +489,7 @@ class ArmReach:
     def __init__(self, arm: ArmConfig | None = None, tool: SuctionToolSpec = SuctionToolSpec()) -> None:
         self.config = arm or ArmConfig()
         self.kin = Gen3Kinematics(self.config.base_position, self.config.base_yaw, tool.length)
-        self.lower = np.array([j[4] for j in JOINTS])
-        self.upper = np.array([j[5] for j in JOINTS])
+        self.lower, self.upper = JOINT_LOWER, JOINT_UPPER
         self.seed = np.asarray(self.config.ik_seed, dtype=np.float64)
         self.tol_p, self.tol_a = self.config.ik_position_tol, self.config.ik_angle_tol
 

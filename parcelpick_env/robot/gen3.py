@@ -35,6 +35,9 @@ JOINTS: tuple[tuple[str, tuple[float, float, float], float, str, float, float, f
     ("joint_6", (0.0, 0.00017505, -0.10593), PI / 2, "revolute", -2.23, 2.23, 9.0),
     ("joint_7", (0.0, -0.10593, -0.00017505), -PI / 2, "continuous", -TWO_PI, TWO_PI, 9.0),
 )
+# rad: the table's joint limits as arrays (read only), for the kinematics' own IK without a pybullet arm
+JOINT_LOWER, JOINT_UPPER = (np.array([j[k] for j in JOINTS]) for k in (4, 5))
+JOINT_LOWER.flags.writeable = JOINT_UPPER.flags.writeable = False
 EE_OFFSET = (0.0, 0.0, -0.061525)  # bracelet -> end effector, roll pi
 LINKS = ("base_link", "shoulder_link", "half_arm_1_link", "half_arm_2_link", "forearm_link",
          "spherical_wrist_1_link", "spherical_wrist_2_link", "bracelet_link")
